@@ -1,0 +1,99 @@
+//! Mitsuba's `perspective` and `thinlens` sensors.
+//!
+//! Camera space: +z forward, +y up, +x towards the image's left (Mitsuba's `lookat`).
+//! Near and far clipping are planes at camera-space z = near / far, as in Mitsuba.
+//! The thin lens focuses on the plane z = `focus_distance` and samples the aperture uniformly
+//! (concentric map) without a vignetting weight, again as Mitsuba does.
+
+use glam::{Mat4, Vec2, Vec3};
+
+use crate::geometry::Ray;
+use crate::math::square_to_uniform_disk_concentric;
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ThinLens {
+    pub aperture_radius: f32,
+    pub focus_distance: f32,
+}
+
+#[derive(Clone, Debug)]
+pub struct Camera {
+    pub to_world: Mat4,
+    /// Full film size in pixels (before cropping).
+    pub film_size: (u32, u32),
+    /// tan of the half field of view along x and y.
+    pub tan_half: Vec2,
+    pub near_clip: f32,
+    pub far_clip: f32,
+    /// `None`: a pinhole. The plan drops a thin lens of zero aperture to a pinhole.
+    pub lens: Option<ThinLens>,
+}
+
+impl Camera {
+    /// Camera-space direction (z = 1, not normalised) through film position `pos` (pixels).
+    #[inline]
+    fn film_dir(&self, pos: Vec2) -> Vec3 {
+        let (w, h) = self.film_size;
+        let nx = 2.0 * pos.x / w as f32 - 1.0;
+        let ny = 2.0 * pos.y / h as f32 - 1.0;
+        Vec3::new(-nx * self.tan_half.x, -ny * self.tan_half.y, 1.0)
+    }
+
+    /// Pinhole ray through film position `pos` (in pixels of the full film).
+    #[inline]
+    pub fn ray_pinhole(&self, pos: Vec2) -> Ray {
+        let d = self.film_dir(pos).normalize();
+        self.finish(Vec3::ZERO, d)
+    }
+
+    /// Thin-lens ray through film position `pos`, lens sample `u` in [0,1)^2.
+    #[inline]
+    pub fn ray_thin_lens(&self, lens: &ThinLens, pos: Vec2, u: Vec2) -> Ray {
+        let focus = self.film_dir(pos) * lens.focus_distance;
+        let l = square_to_uniform_disk_concentric(u) * lens.aperture_radius;
+        let o = Vec3::new(l.x, l.y, 0.0);
+        self.finish(o, (focus - o).normalize())
+    }
+
+    #[inline]
+    fn finish(&self, o: Vec3, d: Vec3) -> Ray {
+        let inv_z = 1.0 / d.z;
+        Ray {
+            o: self.to_world.transform_point3(o),
+            d: self.to_world.transform_vector3(d).normalize(),
+            tmin: self.near_clip * inv_z,
+            tmax: self.far_clip * inv_z,
+        }
+    }
+}
+
+/// tan(fov / 2) along x and y for Mitsuba's `fov_axis` values.
+pub fn tan_half_fov(fov_deg: f32, axis: &str, width: u32, height: u32) -> Option<Vec2> {
+    let aspect = width as f32 / height as f32;
+    let t = (fov_deg.to_radians() * 0.5).tan();
+    let along_x = |tx: f32| Vec2::new(tx, tx / aspect);
+    let along_y = |ty: f32| Vec2::new(ty * aspect, ty);
+    Some(match axis {
+        "x" => along_x(t),
+        "y" => along_y(t),
+        "diagonal" => {
+            let diag = (width as f32).hypot(height as f32);
+            along_x(t * width as f32 / diag)
+        }
+        "smaller" => {
+            if width <= height {
+                along_x(t)
+            } else {
+                along_y(t)
+            }
+        }
+        "larger" => {
+            if width >= height {
+                along_x(t)
+            } else {
+                along_y(t)
+            }
+        }
+        _ => return None,
+    })
+}

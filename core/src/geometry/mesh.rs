@@ -1,0 +1,294 @@
+//! Triangle meshes: OBJ (tobj) and PLY (ply-rs-bw) loading, and Mitsuba's `rectangle` and `cube`.
+
+use std::path::Path;
+
+use glam::{Mat4, Vec2, Vec3};
+
+use crate::math::gamma;
+
+/// A world-space triangle mesh. `normals` and `uvs` are either empty or one per vertex.
+#[derive(Clone, Debug, Default)]
+pub struct Mesh {
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub uvs: Vec<Vec2>,
+    pub tris: Vec<[u32; 3]>,
+}
+
+/// Why a mesh file could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum MeshError {
+    #[error("cannot read mesh: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("cannot parse mesh: {0}")]
+    Parse(String),
+    #[error("mesh has no triangles")]
+    Empty,
+    #[error("face {face} refers to vertex {index}, but the mesh has {count} vertices")]
+    BadIndex {
+        face: usize,
+        index: u32,
+        count: usize,
+    },
+    #[error("vertex {0} has a non-finite coordinate")]
+    NonFinite(usize),
+}
+
+impl Mesh {
+    #[inline]
+    pub fn tri(&self, i: usize) -> [Vec3; 3] {
+        let [a, b, c] = self.tris[i];
+        [
+            self.positions[a as usize],
+            self.positions[b as usize],
+            self.positions[c as usize],
+        ]
+    }
+
+    /// Point, error bound, geometric normal, shading normal, uv and dp/du at barycentrics
+    /// (b1, b2) of triangle `i`. Without texture coordinates uv = (b1, b2), as in Mitsuba.
+    #[inline]
+    pub fn surface(&self, i: usize, b1: f32, b2: f32) -> (Vec3, Vec3, Vec3, Vec3, Vec2, Vec3) {
+        let [ia, ib, ic] = self.tris[i].map(|k| k as usize);
+        let (p0, p1, p2) = (self.positions[ia], self.positions[ib], self.positions[ic]);
+        let b0 = 1.0 - b1 - b2;
+        let p = p0 * b0 + p1 * b1 + p2 * b2;
+        let p_err = ((p0 * b0).abs() + (p1 * b1).abs() + (p2 * b2).abs()) * gamma(7);
+        let e1 = p1 - p0;
+        let e2 = p2 - p0;
+        let mut ng = e1.cross(e2).normalize_or_zero();
+        let (uv, dpdu) = if self.uvs.is_empty() {
+            (Vec2::new(b1, b2), e1)
+        } else {
+            let (t0, t1, t2) = (self.uvs[ia], self.uvs[ib], self.uvs[ic]);
+            let uv = t0 * b0 + t1 * b1 + t2 * b2;
+            let (d1, d2) = (t1 - t0, t2 - t0);
+            let det = d1.x * d2.y - d1.y * d2.x;
+            let dpdu = if det.abs() > 1e-12 {
+                (e1 * d2.y - e2 * d1.y) / det
+            } else {
+                e1
+            };
+            (uv, dpdu)
+        };
+        let ns = if self.normals.is_empty() {
+            ng
+        } else {
+            let n = (self.normals[ia] * b0 + self.normals[ib] * b1 + self.normals[ic] * b2)
+                .normalize_or_zero();
+            if n == Vec3::ZERO {
+                ng
+            } else {
+                // The geometric normal lies on the side of the shading normal.
+                if ng.dot(n) < 0.0 {
+                    ng = -ng;
+                }
+                n
+            }
+        };
+        (p, p_err, ng, ns, uv, dpdu)
+    }
+
+    /// Applies `to_world` to positions and (by the inverse transpose) to normals.
+    pub fn transform(&mut self, m: &Mat4) {
+        for p in &mut self.positions {
+            *p = m.transform_point3(*p);
+        }
+        let nm = m.inverse().transpose();
+        for n in &mut self.normals {
+            *n = nm.transform_vector3(*n).normalize_or_zero();
+        }
+    }
+
+    /// Checks indices and coordinates, and drops degenerate (zero-area) triangles.
+    pub fn validate(mut self) -> Result<Mesh, MeshError> {
+        let count = self.positions.len();
+        if let Some(k) = self.positions.iter().position(|p| !p.is_finite()) {
+            return Err(MeshError::NonFinite(k));
+        }
+        for (face, t) in self.tris.iter().enumerate() {
+            if let Some(&index) = t.iter().find(|&&k| k as usize >= count) {
+                return Err(MeshError::BadIndex { face, index, count });
+            }
+        }
+        let positions = &self.positions;
+        self.tris.retain(|t| {
+            let [a, b, c] = t.map(|k| positions[k as usize]);
+            (b - a).cross(c - a).length_squared() > 0.0
+        });
+        if self.tris.is_empty() {
+            return Err(MeshError::Empty);
+        }
+        Ok(self)
+    }
+
+    /// Mitsuba's `rectangle`: [-1, 1]^2 in the xy-plane, normal +z, uv = ((x + 1) / 2, (y + 1) / 2).
+    pub fn rectangle() -> Mesh {
+        Mesh {
+            positions: vec![
+                Vec3::new(-1.0, -1.0, 0.0),
+                Vec3::new(1.0, -1.0, 0.0),
+                Vec3::new(1.0, 1.0, 0.0),
+                Vec3::new(-1.0, 1.0, 0.0),
+            ],
+            normals: vec![Vec3::Z; 4],
+            uvs: vec![
+                Vec2::new(0.0, 0.0),
+                Vec2::new(1.0, 0.0),
+                Vec2::new(1.0, 1.0),
+                Vec2::new(0.0, 1.0),
+            ],
+            tris: vec![[0, 1, 2], [0, 2, 3]],
+        }
+    }
+
+    /// Mitsuba's `cube`: [-1, 1]^3, 24 vertices so that each face has its own normal and uvs.
+    pub fn cube() -> Mesh {
+        let mut m = Mesh::default();
+        // (normal, tangent u, tangent v) per face, with u x v = normal.
+        let faces = [
+            (Vec3::X, Vec3::NEG_Z, Vec3::Y),
+            (Vec3::NEG_X, Vec3::Z, Vec3::Y),
+            (Vec3::Y, Vec3::X, Vec3::NEG_Z),
+            (Vec3::NEG_Y, Vec3::X, Vec3::Z),
+            (Vec3::Z, Vec3::X, Vec3::Y),
+            (Vec3::NEG_Z, Vec3::NEG_X, Vec3::Y),
+        ];
+        for (n, u, v) in faces {
+            let base = m.positions.len() as u32;
+            for (su, sv) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+                m.positions.push(n + u * su + v * sv);
+                m.normals.push(n);
+                m.uvs.push(Vec2::new((su + 1.0) * 0.5, (sv + 1.0) * 0.5));
+            }
+            m.tris.push([base, base + 1, base + 2]);
+            m.tris.push([base, base + 2, base + 3]);
+        }
+        m
+    }
+
+    /// Loads a Wavefront OBJ (all objects merged). `flip_v` flips texture v, as Mitsuba does by
+    /// default (`flip_tex_coords`).
+    pub fn load_obj(path: &Path, flip_v: bool) -> Result<Mesh, MeshError> {
+        let opts = tobj::LoadOptions {
+            triangulate: true,
+            single_index: true,
+            ..Default::default()
+        };
+        let (models, _) =
+            tobj::load_obj(path, &opts).map_err(|e| MeshError::Parse(e.to_string()))?;
+        let mut out = Mesh::default();
+        let all_n = models.iter().all(|m| !m.mesh.normals.is_empty());
+        let all_uv = models.iter().all(|m| !m.mesh.texcoords.is_empty());
+        for model in &models {
+            let mesh = &model.mesh;
+            let base = out.positions.len() as u32;
+            out.positions.extend(
+                mesh.positions
+                    .chunks_exact(3)
+                    .map(|p| Vec3::new(p[0], p[1], p[2])),
+            );
+            if all_n {
+                out.normals.extend(
+                    mesh.normals
+                        .chunks_exact(3)
+                        .map(|n| Vec3::new(n[0], n[1], n[2])),
+                );
+            }
+            if all_uv {
+                out.uvs.extend(
+                    mesh.texcoords
+                        .chunks_exact(2)
+                        .map(|t| Vec2::new(t[0], if flip_v { 1.0 - t[1] } else { t[1] })),
+                );
+            }
+            out.tris.extend(
+                mesh.indices
+                    .chunks_exact(3)
+                    .map(|t| [t[0] + base, t[1] + base, t[2] + base]),
+            );
+        }
+        Ok(out)
+    }
+
+    /// Loads a PLY file (ASCII or binary): `x y z`, optional `nx ny nz` and `u v` (or `s t`),
+    /// faces from `vertex_indices` (or `vertex_index`), polygons fan-triangulated.
+    pub fn load_ply(path: &Path) -> Result<Mesh, MeshError> {
+        use ply_rs_bw::parser::Parser;
+        use ply_rs_bw::ply::{DefaultElement, Property};
+        let mut f = std::io::BufReader::new(std::fs::File::open(path)?);
+        let ply = Parser::<DefaultElement>::new()
+            .read_ply(&mut f)
+            .map_err(|e| MeshError::Parse(e.to_string()))?;
+        let get = |e: &DefaultElement, names: &[&str]| -> Option<f32> {
+            names
+                .iter()
+                .find_map(|n| e.get(*n).and_then(|p| p.to_f32_lossy()))
+        };
+        let mut out = Mesh::default();
+        let verts = ply
+            .payload
+            .get("vertex")
+            .ok_or_else(|| MeshError::Parse("no 'vertex' element".into()))?;
+        for (k, v) in verts.iter().enumerate() {
+            let p = match (get(v, &["x"]), get(v, &["y"]), get(v, &["z"])) {
+                (Some(x), Some(y), Some(z)) => Vec3::new(x, y, z),
+                _ => return Err(MeshError::Parse(format!("vertex {k} lacks x, y or z"))),
+            };
+            out.positions.push(p);
+            if let (Some(x), Some(y), Some(z)) = (get(v, &["nx"]), get(v, &["ny"]), get(v, &["nz"]))
+            {
+                out.normals.push(Vec3::new(x, y, z));
+            }
+            if let (Some(u), Some(w)) = (
+                get(v, &["u", "s", "texture_u"]),
+                get(v, &["v", "t", "texture_v"]),
+            ) {
+                out.uvs.push(Vec2::new(u, w));
+            }
+        }
+        if out.normals.len() != out.positions.len() {
+            out.normals.clear();
+        }
+        if out.uvs.len() != out.positions.len() {
+            out.uvs.clear();
+        }
+        let faces = ply
+            .payload
+            .get("face")
+            .ok_or_else(|| MeshError::Parse("no 'face' element".into()))?;
+        for (k, f) in faces.iter().enumerate() {
+            let idx = f
+                .get("vertex_indices")
+                .or_else(|| f.get("vertex_index"))
+                .and_then(Property::to_u32_list)
+                .ok_or_else(|| MeshError::Parse(format!("face {k} has no vertex_indices list")))?;
+            for j in 1..idx.len().saturating_sub(1) {
+                out.tris.push([idx[0], idx[j], idx[j + 1]]);
+            }
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cube_faces_point_outward() {
+        let m = Mesh::cube();
+        for i in 0..m.tris.len() {
+            let (p, _, ng, ns, _, _) = m.surface(i, 1.0 / 3.0, 1.0 / 3.0);
+            assert!(ng.dot(p) > 0.0 && (ng - ns).length() < 1e-6, "face {i}");
+        }
+    }
+
+    #[test]
+    fn rectangle_faces_plus_z() {
+        let m = Mesh::rectangle();
+        let (_, _, ng, _, uv, _) = m.surface(0, 0.0, 0.0);
+        assert!((ng - Vec3::Z).length() < 1e-6);
+        assert_eq!(uv, Vec2::new(0.0, 0.0));
+    }
+}

@@ -1,0 +1,240 @@
+//! Geometry: rays, surface interactions, shapes (triangle meshes, analytic spheres and disks)
+//! and the BVH over all of their primitives.
+
+pub mod bvh;
+pub mod mesh;
+pub mod shapes;
+
+use glam::{Vec2, Vec3};
+
+use crate::math::{offset_ray_origin, Frame};
+
+pub use bvh::Accel;
+pub use mesh::Mesh;
+pub use shapes::{Disk, Geometry, Shape, Sphere};
+
+/// A ray `o + t d` for `t` in `[tmin, tmax)`. `d` is unit length unless stated otherwise.
+#[derive(Clone, Copy, Debug)]
+pub struct Ray {
+    pub o: Vec3,
+    pub d: Vec3,
+    pub tmin: f32,
+    pub tmax: f32,
+}
+
+impl Ray {
+    pub fn new(o: Vec3, d: Vec3) -> Ray {
+        Ray {
+            o,
+            d,
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+        }
+    }
+
+    pub fn at(&self, t: f32) -> Vec3 {
+        self.o + self.d * t
+    }
+}
+
+/// A ray-surface intersection with everything shading needs.
+#[derive(Clone, Copy, Debug)]
+pub struct Interaction {
+    /// Hit point and its absolute floating-point error bound.
+    pub p: Vec3,
+    pub p_err: Vec3,
+    pub t: f32,
+    /// Geometric normal (unit; flipped with `flip_normals`).
+    pub ng: Vec3,
+    /// Shading frame; `frame.n` is the shading normal.
+    pub frame: Frame,
+    pub uv: Vec2,
+    pub shape: u32,
+    pub prim: u32,
+}
+
+impl Interaction {
+    /// A ray leaving the surface in direction `d` that cannot re-hit the surface it starts on.
+    pub fn spawn_ray(&self, d: Vec3) -> Ray {
+        Ray::new(offset_ray_origin(self.p, self.p_err, self.ng, d), d)
+    }
+
+    /// A shadow ray from this surface towards `target` (a point already offset off its own
+    /// surface), stopping just short of it. Returns the ray and the distance to the target.
+    pub fn spawn_ray_to(&self, target: Vec3) -> Ray {
+        let o = offset_ray_origin(self.p, self.p_err, self.ng, target - self.p);
+        let v = target - o;
+        let dist = v.length();
+        Ray {
+            o,
+            d: v / dist,
+            tmin: 0.0,
+            tmax: dist * (1.0 - 1e-4),
+        }
+    }
+}
+
+/// Per-ray constants of the watertight ray-triangle test (Woop, Benthin and Wald 2013):
+/// the axis permutation that makes the ray's dominant axis z, and the shear that makes the ray
+/// direction (0, 0, 1).
+#[derive(Clone, Copy, Debug)]
+pub struct RayPre {
+    kx: usize,
+    ky: usize,
+    kz: usize,
+    sx: f32,
+    sy: f32,
+    sz: f32,
+}
+
+impl RayPre {
+    pub fn new(d: Vec3) -> RayPre {
+        let a = d.abs();
+        let kz = if a.x > a.y {
+            if a.x > a.z {
+                0
+            } else {
+                2
+            }
+        } else if a.y > a.z {
+            1
+        } else {
+            2
+        };
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
+        if d[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky); // keep the winding
+        }
+        RayPre {
+            kx,
+            ky,
+            kz,
+            sx: -d[kx] / d[kz],
+            sy: -d[ky] / d[kz],
+            sz: 1.0 / d[kz],
+        }
+    }
+}
+
+/// Watertight ray-triangle intersection. Returns `(t, b0, b1, b2)` with barycentric weights of
+/// `p0`, `p1`, `p2`. Edges shared by two triangles are never both missed, and the hit distance is
+/// accepted only beyond its own rounding error bound (pbrt 3rd ed., section 3.9.6).
+#[inline]
+pub fn intersect_triangle(
+    ray: &Ray,
+    pre: &RayPre,
+    tmax: f32,
+    p0: Vec3,
+    p1: Vec3,
+    p2: Vec3,
+) -> Option<(f32, f32, f32, f32)> {
+    use crate::math::gamma;
+    let a = p0 - ray.o;
+    let b = p1 - ray.o;
+    let c = p2 - ray.o;
+    let (kx, ky, kz) = (pre.kx, pre.ky, pre.kz);
+    let ax = a[kx] + pre.sx * a[kz];
+    let ay = a[ky] + pre.sy * a[kz];
+    let bx = b[kx] + pre.sx * b[kz];
+    let by = b[ky] + pre.sy * b[kz];
+    let cx = c[kx] + pre.sx * c[kz];
+    let cy = c[ky] + pre.sy * c[kz];
+    let mut u = cx * by - cy * bx;
+    let mut v = ax * cy - ay * cx;
+    let mut w = bx * ay - by * ax;
+    if u == 0.0 || v == 0.0 || w == 0.0 {
+        // Fall back to double precision on an edge, so that the sign is exact.
+        u = (cx as f64 * by as f64 - cy as f64 * bx as f64) as f32;
+        v = (ax as f64 * cy as f64 - ay as f64 * cx as f64) as f32;
+        w = (bx as f64 * ay as f64 - by as f64 * ax as f64) as f32;
+    }
+    if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+        return None;
+    }
+    let det = u + v + w;
+    if det == 0.0 {
+        return None;
+    }
+    let az = pre.sz * a[kz];
+    let bz = pre.sz * b[kz];
+    let cz = pre.sz * c[kz];
+    let t_scaled = u * az + v * bz + w * cz;
+    if det < 0.0 && (t_scaled >= ray.tmin * det || t_scaled < tmax * det) {
+        return None;
+    }
+    if det > 0.0 && (t_scaled <= ray.tmin * det || t_scaled > tmax * det) {
+        return None;
+    }
+    let inv_det = 1.0 / det;
+    let t = t_scaled * inv_det;
+    // Reject hits closer than the error bound of t itself.
+    let max_zt = az.abs().max(bz.abs()).max(cz.abs());
+    let delta_z = gamma(3) * max_zt;
+    let max_xt = ax.abs().max(bx.abs()).max(cx.abs());
+    let max_yt = ay.abs().max(by.abs()).max(cy.abs());
+    let delta_x = gamma(5) * (max_xt + max_zt);
+    let delta_y = gamma(5) * (max_yt + max_zt);
+    let delta_e = 2.0 * (gamma(2) * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt);
+    let max_e = u.abs().max(v.abs()).max(w.abs());
+    let delta_t =
+        3.0 * (gamma(3) * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv_det.abs();
+    if t <= delta_t {
+        return None;
+    }
+    Some((t, u * inv_det, v * inv_det, w * inv_det))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shared_edge_is_hit_exactly_once_or_twice_never_missed() {
+        // Two triangles sharing the diagonal of the unit square; rays aimed at the diagonal.
+        let p = [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        ];
+        let mut misses = 0;
+        for i in 1..1000 {
+            let s = i as f32 / 1000.0;
+            let o = Vec3::new(s, s, 1.0) + Vec3::new(0.3, -0.2, 0.0);
+            let d = (Vec3::new(s, s, 0.0) - o).normalize();
+            let ray = Ray::new(o, d);
+            let pre = RayPre::new(d);
+            let h1 = intersect_triangle(&ray, &pre, f32::INFINITY, p[0], p[1], p[2]);
+            let h2 = intersect_triangle(&ray, &pre, f32::INFINITY, p[0], p[2], p[3]);
+            if h1.is_none() && h2.is_none() {
+                misses += 1;
+            }
+        }
+        assert_eq!(misses, 0);
+    }
+
+    #[test]
+    fn degenerate_triangle_is_never_hit() {
+        let ray = Ray::new(Vec3::new(0.5, 0.0, 1.0), Vec3::new(0.0, 0.0, -1.0));
+        let pre = RayPre::new(ray.d);
+        let a = Vec3::new(0.0, 0.0, 0.0);
+        let b = Vec3::new(1.0, 0.0, 0.0);
+        assert!(intersect_triangle(&ray, &pre, f32::INFINITY, a, b, b).is_none());
+        assert!(intersect_triangle(&ray, &pre, f32::INFINITY, a, a, a).is_none());
+    }
+
+    #[test]
+    fn barycentrics_reconstruct_the_hit_point() {
+        let (p0, p1, p2) = (
+            Vec3::new(-1.0, -1.0, -2.0),
+            Vec3::new(2.0, -1.0, -2.5),
+            Vec3::new(0.0, 2.0, -3.0),
+        );
+        let ray = Ray::new(Vec3::ZERO, Vec3::new(0.1, 0.05, -1.0).normalize());
+        let pre = RayPre::new(ray.d);
+        let (t, b0, b1, b2) = intersect_triangle(&ray, &pre, f32::INFINITY, p0, p1, p2).unwrap();
+        let p = p0 * b0 + p1 * b1 + p2 * b2;
+        assert!((p - ray.at(t)).length() < 1e-5);
+    }
+}

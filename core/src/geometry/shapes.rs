@@ -1,0 +1,299 @@
+//! Shapes: triangle meshes and the analytic sphere and disk, with Mitsuba's parameterisations
+//! (sphere uv from the object-space polar angles, disk uv = (r, phi / 2pi)).
+
+use glam::{Mat3, Mat4, Vec2, Vec3};
+
+use super::{intersect_triangle, Interaction, Mesh, Ray, RayPre};
+use crate::math::{gamma, safe_acos, Frame, PI};
+
+/// A sphere (`center`, `radius`); `rot` maps world directions to the object frame that defines
+/// its uv parameterisation.
+#[derive(Clone, Debug)]
+pub struct Sphere {
+    pub center: Vec3,
+    pub radius: f32,
+    pub rot: Mat3,
+}
+
+/// The unit disk in the object xy-plane, facing +z, placed by an affine `to_world`.
+#[derive(Clone, Debug)]
+pub struct Disk {
+    pub to_world: Mat4,
+    pub to_object: Mat4,
+    pub normal: Vec3,
+    pub area: f32,
+}
+
+impl Disk {
+    pub fn new(to_world: Mat4) -> Disk {
+        let ex = to_world.transform_vector3(Vec3::X);
+        let ey = to_world.transform_vector3(Vec3::Y);
+        let normal = to_world
+            .inverse()
+            .transpose()
+            .transform_vector3(Vec3::Z)
+            .normalize();
+        Disk {
+            to_world,
+            to_object: to_world.inverse(),
+            normal,
+            area: PI * ex.cross(ey).length(),
+        }
+    }
+
+    /// World point of object-space `(x, y, 0)` and its rounding error bound.
+    pub fn point(&self, x: f32, y: f32) -> (Vec3, Vec3) {
+        let m = &self.to_world;
+        let p = m.transform_point3(Vec3::new(x, y, 0.0));
+        let (c0, c1, c3) = (m.x_axis, m.y_axis, m.w_axis);
+        let err = Vec3::new(
+            (c0.x * x).abs() + (c1.x * y).abs() + c3.x.abs(),
+            (c0.y * x).abs() + (c1.y * y).abs() + c3.y.abs(),
+            (c0.z * x).abs() + (c1.z * y).abs() + c3.z.abs(),
+        ) * gamma(3);
+        (p, err)
+    }
+}
+
+#[derive(Clone, Debug)]
+pub enum Geometry {
+    Mesh(Mesh),
+    Sphere(Sphere),
+    Disk(Disk),
+}
+
+/// A shape placed in the scene, with its material and (optional) area emitter.
+#[derive(Clone, Debug)]
+pub struct Shape {
+    pub geometry: Geometry,
+    pub bsdf: u32,
+    pub light: Option<u32>,
+    pub flip_normals: bool,
+    /// The `id` from the scene file, or the plugin name.
+    pub name: String,
+}
+
+/// A point on a shape's surface, as sampled for area lights.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfacePoint {
+    pub p: Vec3,
+    pub p_err: Vec3,
+    pub n: Vec3,
+}
+
+impl Shape {
+    pub fn prim_count(&self) -> usize {
+        match &self.geometry {
+            Geometry::Mesh(m) => m.tris.len(),
+            Geometry::Sphere(_) | Geometry::Disk(_) => 1,
+        }
+    }
+
+    pub fn prim_bounds(&self, prim: usize) -> (Vec3, Vec3) {
+        match &self.geometry {
+            Geometry::Mesh(m) => {
+                let [a, b, c] = m.tri(prim);
+                (a.min(b).min(c), a.max(b).max(c))
+            }
+            Geometry::Sphere(s) => (s.center - s.radius, s.center + s.radius),
+            Geometry::Disk(d) => {
+                let mut lo = Vec3::splat(f32::INFINITY);
+                let mut hi = Vec3::splat(f32::NEG_INFINITY);
+                for (x, y) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+                    let p = d.to_world.transform_point3(Vec3::new(x, y, 0.0));
+                    lo = lo.min(p);
+                    hi = hi.max(p);
+                }
+                (lo, hi)
+            }
+        }
+    }
+
+    /// Nearest intersection of primitive `prim` closer than `tmax`: `(t, aux)`, where `aux`
+    /// carries what [`Shape::interaction`] needs (barycentrics for triangles).
+    #[inline]
+    pub fn intersect(
+        &self,
+        prim: usize,
+        ray: &Ray,
+        pre: &RayPre,
+        tmax: f32,
+    ) -> Option<(f32, Vec2)> {
+        match &self.geometry {
+            Geometry::Mesh(m) => {
+                let [p0, p1, p2] = m.tri(prim);
+                intersect_triangle(ray, pre, tmax, p0, p1, p2)
+                    .map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
+            }
+            Geometry::Sphere(s) => intersect_sphere(s, ray, tmax).map(|t| (t, Vec2::ZERO)),
+            Geometry::Disk(d) => {
+                let o = d.to_object.transform_point3(ray.o);
+                let dir = d.to_object.transform_vector3(ray.d);
+                if dir.z == 0.0 {
+                    return None;
+                }
+                let t = -o.z / dir.z;
+                if !(t > ray.tmin && t < tmax) {
+                    return None;
+                }
+                let q = o + dir * t;
+                if q.x * q.x + q.y * q.y > 1.0 {
+                    return None;
+                }
+                Some((t, Vec2::new(q.x, q.y)))
+            }
+        }
+    }
+
+    /// Full surface information for a hit found by [`Shape::intersect`].
+    pub fn interaction(
+        &self,
+        shape: u32,
+        prim: usize,
+        ray: &Ray,
+        t: f32,
+        aux: Vec2,
+    ) -> Interaction {
+        let (p, p_err, mut ng, mut ns, uv, dpdu) = match &self.geometry {
+            Geometry::Mesh(m) => m.surface(prim, aux.x, aux.y),
+            Geometry::Sphere(s) => {
+                let n = (ray.at(t) - s.center).normalize();
+                let p = s.center + n * s.radius;
+                let p_err = (s.center.abs() + (n * s.radius).abs()) * gamma(6);
+                let l = s.rot * n;
+                let mut phi = l.y.atan2(l.x);
+                if phi < 0.0 {
+                    phi += 2.0 * PI;
+                }
+                let uv = Vec2::new(phi / (2.0 * PI), safe_acos(l.z) / PI);
+                let dpdu = s.rot.transpose() * Vec3::new(-l.y, l.x, 0.0) * (2.0 * PI * s.radius);
+                (p, p_err, n, n, uv, dpdu)
+            }
+            Geometry::Disk(d) => {
+                let (p, p_err) = d.point(aux.x, aux.y);
+                let r = aux.length();
+                let mut phi = aux.y.atan2(aux.x);
+                if phi < 0.0 {
+                    phi += 2.0 * PI;
+                }
+                let (s, c) = phi.sin_cos();
+                let dpdu = d.to_world.transform_vector3(Vec3::new(c, s, 0.0));
+                (
+                    p,
+                    p_err,
+                    d.normal,
+                    d.normal,
+                    Vec2::new(r, phi / (2.0 * PI)),
+                    dpdu,
+                )
+            }
+        };
+        if self.flip_normals {
+            ng = -ng;
+            ns = -ns;
+        }
+        Interaction {
+            p,
+            p_err,
+            t,
+            ng,
+            frame: Frame::from_normal_tangent(ns, dpdu),
+            uv,
+            shape,
+            prim: prim as u32,
+        }
+    }
+
+    /// Surface area of one primitive (triangle areas for meshes).
+    pub fn prim_area(&self, prim: usize) -> f64 {
+        match &self.geometry {
+            Geometry::Mesh(m) => {
+                let [a, b, c] = m.tri(prim);
+                0.5 * ((b - a).as_dvec3().cross((c - a).as_dvec3())).length()
+            }
+            Geometry::Sphere(s) => 4.0 * std::f64::consts::PI * (s.radius as f64).powi(2),
+            Geometry::Disk(d) => d.area as f64,
+        }
+    }
+
+    /// A uniformly distributed point on primitive `prim` with its (flipped) normal.
+    pub fn sample_prim(&self, prim: usize, u: Vec2) -> SurfacePoint {
+        let (p, p_err, n) = match &self.geometry {
+            Geometry::Mesh(m) => {
+                let b = crate::math::square_to_uniform_triangle(u);
+                // Emission and its cosine follow the shading normal, as for hits.
+                let (p, p_err, _ng, ns, _, _) = m.surface(prim, b.x, b.y);
+                (p, p_err, ns)
+            }
+            Geometry::Sphere(s) => {
+                let n = crate::math::square_to_uniform_sphere(u);
+                let p = s.center + n * s.radius;
+                (p, (s.center.abs() + (n * s.radius).abs()) * gamma(6), n)
+            }
+            Geometry::Disk(d) => {
+                let q = crate::math::square_to_uniform_disk_concentric(u);
+                let (p, p_err) = d.point(q.x, q.y);
+                (p, p_err, d.normal)
+            }
+        };
+        SurfacePoint {
+            p,
+            p_err,
+            n: if self.flip_normals { -n } else { n },
+        }
+    }
+}
+
+/// Ray-sphere intersection with the numerically careful discriminant
+/// b^2 - ac = a (r^2 - |f - (b/a) d|^2), f = o - c (pbrt 4th ed., section 6.8.1).
+#[inline]
+fn intersect_sphere(s: &Sphere, ray: &Ray, tmax: f32) -> Option<f32> {
+    let f = ray.o - s.center;
+    let a = ray.d.length_squared();
+    let b = f.dot(ray.d);
+    let c = f.length_squared() - s.radius * s.radius;
+    let l = f - ray.d * (b / a);
+    let disc = a * (s.radius * s.radius - l.length_squared());
+    if disc < 0.0 {
+        return None;
+    }
+    let root = disc.sqrt();
+    let q = -(b + root.copysign(b));
+    let (mut t0, mut t1) = (q / a, c / q);
+    if t0 > t1 {
+        std::mem::swap(&mut t0, &mut t1);
+    }
+    if t0 > ray.tmin && t0 < tmax {
+        Some(t0)
+    } else if t1 > ray.tmin && t1 < tmax {
+        Some(t1)
+    } else {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sphere_hit_from_outside_and_inside() {
+        let s = Sphere {
+            center: Vec3::new(0.0, 0.0, -5.0),
+            radius: 1.0,
+            rot: Mat3::IDENTITY,
+        };
+        let r = Ray::new(Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0));
+        assert!((intersect_sphere(&s, &r, f32::INFINITY).unwrap() - 4.0).abs() < 1e-5);
+        let r = Ray::new(Vec3::new(0.0, 0.0, -5.0), Vec3::X);
+        assert!((intersect_sphere(&s, &r, f32::INFINITY).unwrap() - 1.0).abs() < 1e-6);
+        let r = Ray::new(Vec3::ZERO, Vec3::X);
+        assert!(intersect_sphere(&s, &r, f32::INFINITY).is_none());
+    }
+
+    #[test]
+    fn disk_area_follows_its_transform() {
+        let d = Disk::new(Mat4::from_scale(Vec3::new(2.0, 3.0, 1.0)));
+        assert!((d.area - 6.0 * PI).abs() < 1e-4);
+    }
+}

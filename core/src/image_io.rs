@@ -1,0 +1,174 @@
+//! Images: EXR (RGB f32) and tonemapped sRGB PNG output, EXR input, and error metrics
+//! against a reference (the same definitions as `peers/compare.py`).
+
+use std::path::Path;
+
+use crate::math::{linear_to_srgb, luminance, Rgb};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ImageIoError {
+    #[error("{path}: {source}")]
+    Exr {
+        path: String,
+        source: exr::error::Error,
+    },
+    #[error("{path}: {source}")]
+    Png {
+        path: String,
+        source: image::ImageError,
+    },
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+}
+
+/// A linear RGB image, row 0 at the top.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub data: Vec<Rgb>,
+}
+
+impl Image {
+    #[inline]
+    pub fn get(&self, x: u32, y: u32) -> Rgb {
+        self.data[(y * self.width + x) as usize]
+    }
+
+    /// Writes RGB f32 EXR, atomically (temporary file, then rename). Never spawns threads.
+    pub fn write_exr(&self, path: &Path) -> Result<(), ImageIoError> {
+        use exr::prelude::*;
+        let tmp = tmp_path(path);
+        let w = self.width as usize;
+        let channels = SpecificChannels::rgb(|pos: Vec2<usize>| {
+            let c = self.data[pos.y() * w + pos.x()];
+            (c.x, c.y, c.z)
+        });
+        Image::from_channels((w, self.height as usize), channels)
+            .write()
+            .non_parallel()
+            .to_file(&tmp)
+            .map_err(|source| ImageIoError::Exr {
+                path: path.display().to_string(),
+                source,
+            })?;
+        std::fs::rename(&tmp, path).map_err(|source| ImageIoError::Io {
+            path: path.display().to_string(),
+            source,
+        })
+    }
+
+    /// Writes an 8-bit sRGB PNG: radiance x 2^exposure, clamped to [0, 1], sRGB-encoded.
+    pub fn write_png(&self, path: &Path, exposure: f32) -> Result<(), ImageIoError> {
+        let scale = exposure.exp2();
+        let mut buf = Vec::with_capacity(self.data.len() * 3);
+        for c in &self.data {
+            for v in [c.x, c.y, c.z] {
+                let v = if v.is_finite() {
+                    (v * scale).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                buf.push((linear_to_srgb(v) * 255.0 + 0.5) as u8);
+            }
+        }
+        let tmp = tmp_path(path);
+        image::save_buffer_with_format(
+            &tmp,
+            &buf,
+            self.width,
+            self.height,
+            image::ExtendedColorType::Rgb8,
+            image::ImageFormat::Png,
+        )
+        .map_err(|source| ImageIoError::Png {
+            path: path.display().to_string(),
+            source,
+        })?;
+        std::fs::rename(&tmp, path).map_err(|source| ImageIoError::Io {
+            path: path.display().to_string(),
+            source,
+        })
+    }
+
+    /// Reads the first RGB(A) layer of an EXR.
+    pub fn read_exr(path: &Path) -> Result<Image, ImageIoError> {
+        use exr::prelude::*;
+        let img = read_first_rgba_layer_from_file(
+            path,
+            |res, _| crate::image_io::Image {
+                width: res.width() as u32,
+                height: res.height() as u32,
+                data: vec![Rgb::ZERO; res.width() * res.height()],
+            },
+            |im: &mut crate::image_io::Image, pos, (r, g, b, _a): (f32, f32, f32, f32)| {
+                let w = im.width as usize;
+                im.data[pos.y() * w + pos.x()] = Rgb::new(r, g, b);
+            },
+        )
+        .map_err(|source| ImageIoError::Exr {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Ok(img.layer_data.channel_data.pixels)
+    }
+
+    /// Mean Rec.709 luminance over finite pixels.
+    pub fn mean_luminance(&self) -> f64 {
+        let (s, n) = self
+            .data
+            .iter()
+            .filter(|c| c.is_finite())
+            .fold((0.0f64, 0usize), |(s, n), c| {
+                (s + luminance(*c) as f64, n + 1)
+            });
+        s / n.max(1) as f64
+    }
+
+    /// Error against `reference` (same size): relMSE = mean((a - b)^2 / (b^2 + 1e-2)) and
+    /// RMSE over all channels of pixels finite in both.
+    pub fn compare(&self, reference: &Image) -> Option<Comparison> {
+        if self.width != reference.width || self.height != reference.height {
+            return None;
+        }
+        let (mut se, mut rel, mut n) = (0.0f64, 0.0f64, 0usize);
+        for (a, b) in self.data.iter().zip(&reference.data) {
+            if !a.is_finite() || !b.is_finite() {
+                continue;
+            }
+            for c in 0..3 {
+                let d = (a[c] - b[c]) as f64;
+                se += d * d;
+                rel += d * d / ((b[c] as f64).powi(2) + 1e-2);
+                n += 1;
+            }
+        }
+        let n = n.max(1) as f64;
+        Some(Comparison {
+            rmse: (se / n).sqrt(),
+            rel_mse: rel / n,
+            mean_lum: self.mean_luminance(),
+            ref_mean_lum: reference.mean_luminance(),
+        })
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct Comparison {
+    pub rmse: f64,
+    pub rel_mse: f64,
+    pub mean_lum: f64,
+    pub ref_mean_lum: f64,
+}
+
+fn tmp_path(path: &Path) -> std::path::PathBuf {
+    let mut name = path
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_default();
+    name.push(format!(".tmp{}", std::process::id()));
+    path.with_file_name(name)
+}

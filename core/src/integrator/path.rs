@@ -1,0 +1,140 @@
+//! Unidirectional path tracing with next-event estimation and multiple importance sampling
+//! (power heuristic, Veach 1997), Russian roulette as Mitsuba 3's `path` integrator does it:
+//! from `rr_depth` on, continue with probability min(max(throughput) * eta^2, 0.95).
+//!
+//! Depth follows Mitsuba: the camera ray's hit is depth 0; emission is gathered at every depth;
+//! a vertex at depth d scatters only if d + 1 < max_depth.
+
+use glam::Vec2;
+
+use super::Stats;
+use crate::geometry::Ray;
+use crate::math::{mis_power, Rgb};
+use crate::sampler::SampleStream;
+use crate::scene::Scene;
+
+/// Radiance arriving along `ray`.
+pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> Rgb {
+    let plan = &scene.plan;
+    let settings = &scene.integrator;
+    let n_lights = scene.lights.len();
+    let sel_pdf = if n_lights > 0 {
+        1.0 / n_lights as f32
+    } else {
+        0.0
+    };
+
+    let mut l = Rgb::ZERO;
+    let mut beta = Rgb::ONE;
+    let mut eta = 1.0f32;
+    let mut depth: u32 = 0;
+    // The previous scattering vertex, for MIS of emission found by BSDF sampling.
+    let mut prev_p = ray.o;
+    let mut prev_pdf = 0.0f32;
+    let mut prev_delta = true;
+
+    loop {
+        st.rays += 1;
+        let show_emitters = !(settings.hide_emitters && depth == 0);
+        // Without light sampling at the previous vertex, emission found here is unweighted.
+        let unweighted = depth == 0 || prev_delta || !plan.light_sampling;
+        let Some(it) = scene.intersect(&ray) else {
+            if plan.escaped_rays_lookup && show_emitters {
+                st.escaped_lookups += 1;
+                for &k in &scene.infinite_lights {
+                    let light = &scene.lights[k as usize];
+                    let le = light.le_infinite(ray.d);
+                    let w = if unweighted {
+                        1.0
+                    } else {
+                        mis_power(prev_pdf, sel_pdf * light.pdf_infinite(ray.d))
+                    };
+                    l += beta * le * w;
+                }
+            }
+            break;
+        };
+        let shape = &scene.shapes[it.shape as usize];
+        let wo_world = -ray.d;
+        if let (Some(k), true) = (shape.light, show_emitters) {
+            let light = &scene.lights[k as usize];
+            let le = light.le_surface(&it, wo_world);
+            if le != Rgb::ZERO {
+                let w = if unweighted {
+                    1.0
+                } else {
+                    mis_power(
+                        prev_pdf,
+                        sel_pdf * light.pdf_hit(&scene.shapes, prev_p, ray.d, &it),
+                    )
+                };
+                l += beta * le * w;
+            }
+        }
+        if depth.saturating_add(1) >= settings.max_depth {
+            break;
+        }
+
+        let bsdf = &scene.bsdfs[shape.bsdf as usize];
+        let wo = it.frame.to_local(wo_world);
+        let [lu, lv, bu, bv] = s.next_4d();
+        let [lsel, bsel, rr, _] = s.next_4d();
+
+        // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
+        if plan.light_sampling && bsdf.is_smooth() {
+            let x = lsel * n_lights as f32;
+            let k = (x as usize).min(n_lights - 1);
+            let u_prim = (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON);
+            let light = &scene.lights[k];
+            st.light_samples[light.kind() as usize] += 1;
+            if let Some(ls) = light.sample(&scene.shapes, &it, u_prim, Vec2::new(lu, lv)) {
+                if ls.pdf > 0.0 && ls.li != Rgb::ZERO {
+                    let wi = it.frame.to_local(ls.wi);
+                    let f = bsdf.eval(it.uv, wo, wi);
+                    if f != Rgb::ZERO {
+                        let shadow = match ls.target {
+                            Some(t) => it.spawn_ray_to(t),
+                            None => it.spawn_ray(ls.wi),
+                        };
+                        st.shadow_rays += 1;
+                        if !scene.occluded(&shadow) {
+                            let light_pdf = ls.pdf * sel_pdf;
+                            let w = if ls.delta {
+                                1.0
+                            } else {
+                                mis_power(light_pdf, bsdf.pdf(it.uv, wo, wi))
+                            };
+                            l += beta * f * ls.li * (w / light_pdf);
+                        }
+                    }
+                }
+            }
+        }
+
+        // BSDF sampling.
+        st.bsdf_samples += 1;
+        let Some(bs) = bsdf.sample(it.uv, wo, bsel, Vec2::new(bu, bv)) else {
+            break;
+        };
+        let wi_world = it.frame.to_world(bs.wi);
+        beta *= bs.weight;
+        eta *= bs.eta;
+        prev_p = it.p;
+        prev_pdf = bs.pdf;
+        prev_delta = bs.delta;
+        ray = it.spawn_ray(wi_world);
+        depth += 1;
+
+        if depth >= settings.rr_depth {
+            let q = (beta.max_element() * eta * eta).min(0.95);
+            if !(rr < q) {
+                break;
+            }
+            beta /= q;
+        }
+        if !(beta.max_element() > 0.0) {
+            break;
+        }
+    }
+    l
+}

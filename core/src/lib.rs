@@ -1,0 +1,25 @@
+#![allow(clippy::neg_cmp_op_on_partial_ord)] // `!(a > b)` is how NaN is rejected on purpose
+//! Furnace's renderer: Mitsuba 3 scenes in, exact partial accumulations and images out.
+//!
+//! No networking and no async: the farm crates drive this library.
+
+pub mod bsdf;
+pub mod camera;
+pub mod film;
+pub mod geometry;
+pub mod image_io;
+pub mod integrator;
+pub mod light;
+pub mod math;
+pub mod plan;
+pub mod render;
+pub mod sampler;
+pub mod scene;
+pub mod texture;
+
+pub use film::Accum;
+pub use image_io::Image;
+pub use integrator::Stats;
+pub use plan::RenderPlan;
+pub use render::{plan_regions, render_image, render_region, Region};
+pub use scene::{Scene, SceneError};

@@ -1,0 +1,341 @@
+//! Emitters: `area` (on any shape), `point` and `constant`.
+//!
+//! `sample` returns a direction towards the light from a reference point with its radiance and
+//! its solid-angle pdf; `pdf_hit` gives the pdf with which `sample` would have produced a
+//! surface point that a BSDF-sampled ray hit, so that both strategies can be weighted by MIS.
+
+use glam::{Vec2, Vec3};
+
+use crate::geometry::{Geometry, Interaction, Shape, Sphere};
+use crate::math::{square_to_uniform_sphere, Frame, Rgb, INV_FOUR_PI, PI};
+use crate::texture::Texture;
+
+/// Kinds of emitters, for the render plan and statistics.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum LightKind {
+    Area,
+    Point,
+    Constant,
+}
+
+impl LightKind {
+    pub const ALL: [LightKind; 3] = [LightKind::Area, LightKind::Point, LightKind::Constant];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            LightKind::Area => "area",
+            LightKind::Point => "point",
+            LightKind::Constant => "constant",
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub enum Light {
+    Area {
+        shape: u32,
+        radiance: Texture,
+        /// Normalised cumulative area of the shape's primitives (f64), length prims + 1.
+        cdf: Vec<f64>,
+        area: f64,
+    },
+    Point {
+        position: Vec3,
+        intensity: Rgb,
+    },
+    Constant {
+        radiance: Rgb,
+    },
+}
+
+/// A light sample as seen from a reference point.
+#[derive(Clone, Copy, Debug)]
+pub struct LightSample {
+    /// Unit direction from the reference point towards the light.
+    pub wi: Vec3,
+    /// Incident radiance (already divided by nothing: the caller divides by `pdf`).
+    pub li: Rgb,
+    /// Solid-angle pdf of `wi` (1 for delta lights).
+    pub pdf: f32,
+    pub delta: bool,
+    /// The point on the light, offset off its surface; `None` for lights at infinity.
+    pub target: Option<Vec3>,
+}
+
+impl Light {
+    pub fn kind(&self) -> LightKind {
+        match self {
+            Light::Area { .. } => LightKind::Area,
+            Light::Point { .. } => LightKind::Point,
+            Light::Constant { .. } => LightKind::Constant,
+        }
+    }
+
+    pub fn area(shape_idx: u32, shape: &Shape, radiance: Texture) -> Light {
+        let n = shape.prim_count();
+        let mut cdf = Vec::with_capacity(n + 1);
+        let mut acc = 0.0f64;
+        cdf.push(0.0);
+        for i in 0..n {
+            acc += shape.prim_area(i);
+            cdf.push(acc);
+        }
+        for c in &mut cdf {
+            *c /= acc;
+        }
+        Light::Area {
+            shape: shape_idx,
+            radiance,
+            cdf,
+            area: acc,
+        }
+    }
+
+    pub fn is_infinite(&self) -> bool {
+        matches!(self, Light::Constant { .. })
+    }
+
+    /// Samples the light from `it` with `u_prim` (choosing a primitive) and `u`.
+    pub fn sample(
+        &self,
+        shapes: &[Shape],
+        it: &Interaction,
+        u_prim: f32,
+        u: Vec2,
+    ) -> Option<LightSample> {
+        match self {
+            Light::Area {
+                shape,
+                radiance,
+                cdf,
+                area,
+            } => {
+                let sh = &shapes[*shape as usize];
+                if let Geometry::Sphere(s) = &sh.geometry {
+                    if !sh.flip_normals {
+                        if let Some(ls) = sample_sphere_cone(s, it.p, u, radiance) {
+                            return Some(ls);
+                        }
+                    }
+                }
+                let prim = pick(cdf, u_prim);
+                let sp = sh.sample_prim(prim, u);
+                let v = sp.p - it.p;
+                let dist2 = v.length_squared();
+                if dist2 == 0.0 {
+                    return None;
+                }
+                let dist = dist2.sqrt();
+                let wi = v / dist;
+                let cos_l = -sp.n.dot(wi);
+                if cos_l <= 0.0 {
+                    return None; // the sampled point faces away: emits nothing towards `it`
+                }
+                let pdf = dist2 / (cos_l * *area as f32);
+                let li = radiance.eval(uv_of(sh, prim, sp.p));
+                Some(LightSample {
+                    wi,
+                    li,
+                    pdf,
+                    delta: false,
+                    target: Some(crate::math::offset_ray_origin(sp.p, sp.p_err, sp.n, -wi)),
+                })
+            }
+            Light::Point {
+                position,
+                intensity,
+            } => {
+                let v = *position - it.p;
+                let dist2 = v.length_squared();
+                if dist2 == 0.0 {
+                    return None;
+                }
+                Some(LightSample {
+                    wi: v / dist2.sqrt(),
+                    li: *intensity / dist2,
+                    pdf: 1.0,
+                    delta: true,
+                    target: Some(*position),
+                })
+            }
+            Light::Constant { radiance } => Some(LightSample {
+                wi: square_to_uniform_sphere(u),
+                li: *radiance,
+                pdf: INV_FOUR_PI,
+                delta: false,
+                target: None,
+            }),
+        }
+    }
+
+    /// Solid-angle pdf with which [`Light::sample`] from `p_ref` yields the point `hit` on this
+    /// (area) light, reached along unit direction `wi`.
+    pub fn pdf_hit(&self, shapes: &[Shape], p_ref: Vec3, wi: Vec3, hit: &Interaction) -> f32 {
+        match self {
+            Light::Area { shape, area, .. } => {
+                let sh = &shapes[*shape as usize];
+                if let Geometry::Sphere(s) = &sh.geometry {
+                    if !sh.flip_normals {
+                        if let Some(one_minus_cos) = cone_extent(s.center, s.radius, p_ref) {
+                            return 1.0 / (2.0 * PI * one_minus_cos);
+                        }
+                    }
+                }
+                let cos_l = hit.frame.n.dot(-wi).abs();
+                if cos_l == 0.0 {
+                    return 0.0;
+                }
+                let dist2 = (hit.p - p_ref).length_squared();
+                dist2 / (cos_l * *area as f32)
+            }
+            Light::Point { .. } => 0.0,
+            Light::Constant { .. } => INV_FOUR_PI,
+        }
+    }
+
+    /// Solid-angle pdf with which [`Light::sample`] yields direction `d` of a light at infinity.
+    pub fn pdf_infinite(&self, _d: Vec3) -> f32 {
+        match self {
+            Light::Constant { .. } => INV_FOUR_PI,
+            _ => 0.0,
+        }
+    }
+
+    /// Radiance leaving an area light's surface point `hit` towards `wo` (unit, world).
+    pub fn le_surface(&self, hit: &Interaction, wo: Vec3) -> Rgb {
+        match self {
+            Light::Area { radiance, .. } if hit.frame.n.dot(wo) > 0.0 => radiance.eval(hit.uv),
+            _ => Rgb::ZERO,
+        }
+    }
+
+    /// Radiance arriving from infinity along direction `-d` (a ray travelling along `d` escaped).
+    pub fn le_infinite(&self, _d: Vec3) -> Rgb {
+        match self {
+            Light::Constant { radiance } => *radiance,
+            _ => Rgb::ZERO,
+        }
+    }
+}
+
+/// Index `i` with cdf[i] <= u < cdf[i + 1].
+fn pick(cdf: &[f64], u: f32) -> usize {
+    let n = cdf.len() - 1;
+    let u = u as f64;
+    cdf.partition_point(|&c| c <= u)
+        .saturating_sub(1)
+        .min(n - 1)
+}
+
+/// uv of a sampled point (needed only by textured emitters).
+fn uv_of(shape: &Shape, prim: usize, p: Vec3) -> Vec2 {
+    match &shape.geometry {
+        Geometry::Mesh(m) => {
+            if m.uvs.is_empty() {
+                // uv = barycentrics (b1, b2), as for hits; recompute them from the point.
+                let [a, b, c] = m.tri(prim);
+                let (b1, b2) = barycentrics(a, b, c, p);
+                Vec2::new(b1, b2)
+            } else {
+                let [a, b, c] = m.tri(prim);
+                let (b1, b2) = barycentrics(a, b, c, p);
+                let [ia, ib, ic] = m.tris[prim].map(|k| k as usize);
+                m.uvs[ia] * (1.0 - b1 - b2) + m.uvs[ib] * b1 + m.uvs[ic] * b2
+            }
+        }
+        _ => Vec2::ZERO,
+    }
+}
+
+fn barycentrics(a: Vec3, b: Vec3, c: Vec3, p: Vec3) -> (f32, f32) {
+    let (e1, e2, ep) = (b - a, c - a, p - a);
+    let (d11, d12, d22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+    let (dp1, dp2) = (ep.dot(e1), ep.dot(e2));
+    let det = d11 * d22 - d12 * d12;
+    if det == 0.0 {
+        return (0.0, 0.0);
+    }
+    ((d22 * dp1 - d12 * dp2) / det, (d11 * dp2 - d12 * dp1) / det)
+}
+
+/// 1 - cos(theta_max) of the cone a sphere subtends from `p`, or `None` when `p` is inside it.
+/// Computed as sin^2 / (1 + cos) to stay accurate for tiny, distant spheres.
+fn cone_extent(center: Vec3, radius: f32, p: Vec3) -> Option<f32> {
+    let d2 = (center - p).length_squared();
+    let r2 = radius * radius;
+    if d2 <= r2 * 1.0001 {
+        return None;
+    }
+    let sin2 = r2 / d2;
+    let cos = (1.0 - sin2).max(0.0).sqrt();
+    Some(sin2 / (1.0 + cos))
+}
+
+/// Uniform sampling of the cone of directions subtended by a sphere (pbrt 3rd ed., 14.2.2).
+fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Option<LightSample> {
+    let (center, radius) = (s.center, s.radius);
+    let one_minus_cos_max = cone_extent(center, radius, p)?;
+    let to_c = center - p;
+    let dc = to_c.length();
+    let axis = to_c / dc;
+    // cos theta = 1 - u (1 - cos theta_max), kept in "1 - cos" form for accuracy.
+    let one_minus_cos = u.y * one_minus_cos_max;
+    let cos_t = 1.0 - one_minus_cos;
+    let sin2_t = (one_minus_cos * (2.0 - one_minus_cos)).max(0.0);
+    let sin_t = sin2_t.sqrt();
+    let (sp, cp) = (2.0 * PI * u.x).sin_cos();
+    let frame = Frame::from_normal(axis);
+    let wi = frame
+        .to_world(Vec3::new(sin_t * cp, sin_t * sp, cos_t))
+        .normalize();
+    // Distance to the near intersection with the sphere along wi.
+    let ds = dc * cos_t - (radius * radius - dc * dc * sin2_t).max(0.0).sqrt();
+    let hit = p + wi * ds;
+    let n = (hit - center).normalize();
+    let p_on = center + n * radius;
+    let p_err = (center.abs() + (n * radius).abs()) * crate::math::gamma(6);
+    Some(LightSample {
+        wi,
+        li: radiance.eval(sphere_uv(s.rot * n)),
+        pdf: 1.0 / (2.0 * PI * one_minus_cos_max),
+        delta: false,
+        target: Some(crate::math::offset_ray_origin(p_on, p_err, n, -wi)),
+    })
+}
+
+fn sphere_uv(n: Vec3) -> Vec2 {
+    let mut phi = n.y.atan2(n.x);
+    if phi < 0.0 {
+        phi += 2.0 * PI;
+    }
+    Vec2::new(phi / (2.0 * PI), crate::math::safe_acos(n.z) / PI)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pick_follows_the_cdf() {
+        let cdf = [0.0, 0.25, 0.25, 1.0];
+        assert_eq!(pick(&cdf, 0.0), 0);
+        assert_eq!(pick(&cdf, 0.2), 0);
+        assert_eq!(pick(&cdf, 0.25), 2);
+        assert_eq!(pick(&cdf, 0.999_999), 2);
+    }
+
+    #[test]
+    fn cone_of_a_tiny_far_sphere_keeps_its_precision() {
+        // A sun of 0.002 sr: 1 - cos = omega / (2 pi).
+        let omega = 0.002f32;
+        let one_minus_cos = omega / (2.0 * PI);
+        let sin2 = one_minus_cos * (2.0 - one_minus_cos);
+        let d = 1.0e4f32;
+        let r = d * sin2.sqrt();
+        let e = cone_extent(Vec3::new(0.0, 0.0, d), r, Vec3::ZERO).unwrap();
+        assert!(
+            (e - one_minus_cos).abs() / one_minus_cos < 1e-4,
+            "{e} vs {one_minus_cos}"
+        );
+    }
+}

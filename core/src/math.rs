@@ -1,0 +1,282 @@
+//! Small numeric helpers shared by the whole renderer: guarded inverse trig, frames, warps,
+//! floating-point error bounds (pbrt 3rd ed., section 3.9) and colour conversion.
+
+pub use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
+
+/// Linear Rec.709 RGB radiance.
+pub type Rgb = Vec3;
+
+pub const PI: f32 = std::f32::consts::PI;
+pub const INV_PI: f32 = std::f32::consts::FRAC_1_PI;
+pub const INV_TWO_PI: f32 = 0.5 * std::f32::consts::FRAC_1_PI;
+pub const INV_FOUR_PI: f32 = 0.25 * std::f32::consts::FRAC_1_PI;
+
+/// `sqrt` that returns 0 for (slightly) negative arguments produced by rounding.
+#[inline]
+pub fn safe_sqrt(x: f32) -> f32 {
+    x.max(0.0).sqrt()
+}
+
+/// `acos` with its argument clamped to [-1, 1].
+#[inline]
+pub fn safe_acos(x: f32) -> f32 {
+    x.clamp(-1.0, 1.0).acos()
+}
+
+/// `asin` with its argument clamped to [-1, 1].
+#[inline]
+pub fn safe_asin(x: f32) -> f32 {
+    x.clamp(-1.0, 1.0).asin()
+}
+
+/// Rec.709 luminance of a linear RGB colour.
+#[inline]
+pub fn luminance(c: Rgb) -> f32 {
+    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
+/// Conservative bound on the relative rounding error of `n` chained f32 operations
+/// (pbrt 3rd ed., eq. 3.9: gamma_n = n eps / (1 - n eps), eps = 2^-24).
+#[inline]
+pub const fn gamma(n: i32) -> f32 {
+    let e = f32::EPSILON * 0.5;
+    (n as f32 * e) / (1.0 - n as f32 * e)
+}
+
+/// The next representable f32 above `v` (towards +inf).
+#[inline]
+pub fn next_float_up(v: f32) -> f32 {
+    if v.is_infinite() && v > 0.0 {
+        return v;
+    }
+    let v = if v == -0.0 { 0.0 } else { v };
+    let bits = v.to_bits();
+    let bits = if v >= 0.0 { bits + 1 } else { bits - 1 };
+    f32::from_bits(bits)
+}
+
+/// The next representable f32 below `v` (towards -inf).
+#[inline]
+pub fn next_float_down(v: f32) -> f32 {
+    if v.is_infinite() && v < 0.0 {
+        return v;
+    }
+    let v = if v == 0.0 { -0.0 } else { v };
+    let bits = v.to_bits();
+    let bits = if v > 0.0 { bits - 1 } else { bits + 1 };
+    f32::from_bits(bits)
+}
+
+/// Offsets a ray origin `p` with absolute error bound `p_err` along the geometric normal `n`,
+/// to the side of `w`, far enough that the new origin cannot re-intersect the surface it lies on
+/// (pbrt 3rd ed., section 3.9.5), then rounds each component away from the surface.
+#[inline]
+pub fn offset_ray_origin(p: Vec3, p_err: Vec3, n: Vec3, w: Vec3) -> Vec3 {
+    let d = n.abs().dot(p_err);
+    let mut offset = n * d;
+    if w.dot(n) < 0.0 {
+        offset = -offset;
+    }
+    let mut po = p + offset;
+    for i in 0..3 {
+        if offset[i] > 0.0 {
+            po[i] = next_float_up(po[i]);
+        } else if offset[i] < 0.0 {
+            po[i] = next_float_down(po[i]);
+        }
+    }
+    po
+}
+
+/// Orthonormal basis whose third axis is the shading normal; `to_local` maps world directions
+/// into it, so that `cos theta = v.z`.
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub s: Vec3,
+    pub t: Vec3,
+    pub n: Vec3,
+}
+
+impl Frame {
+    /// Builds a frame around `n` (unit) without a preferred tangent (Duff et al. 2017).
+    pub fn from_normal(n: Vec3) -> Frame {
+        let sign = 1.0f32.copysign(n.z);
+        let a = -1.0 / (sign + n.z);
+        let b = n.x * n.y * a;
+        let s = Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x);
+        let t = Vec3::new(b, sign + n.y * n.y * a, -n.y);
+        Frame { s, t, n }
+    }
+
+    /// Builds a frame around `n` whose first axis follows the tangent `dpdu` (Gram-Schmidt);
+    /// falls back to [`Frame::from_normal`] when `dpdu` is degenerate or parallel to `n`.
+    pub fn from_normal_tangent(n: Vec3, dpdu: Vec3) -> Frame {
+        let s = dpdu - n * n.dot(dpdu);
+        let len2 = s.length_squared();
+        if !(len2 > 1e-20) || !len2.is_finite() {
+            return Frame::from_normal(n);
+        }
+        let s = s / len2.sqrt();
+        Frame {
+            s,
+            t: n.cross(s),
+            n,
+        }
+    }
+
+    #[inline]
+    pub fn to_local(&self, v: Vec3) -> Vec3 {
+        Vec3::new(v.dot(self.s), v.dot(self.t), v.dot(self.n))
+    }
+
+    #[inline]
+    pub fn to_world(&self, v: Vec3) -> Vec3 {
+        self.s * v.x + self.t * v.y + self.n * v.z
+    }
+}
+
+/// Shirley-Chiu concentric map of the unit square onto the unit disk.
+#[inline]
+pub fn square_to_uniform_disk_concentric(u: Vec2) -> Vec2 {
+    let x = 2.0 * u.x - 1.0;
+    let y = 2.0 * u.y - 1.0;
+    if x == 0.0 && y == 0.0 {
+        return Vec2::ZERO;
+    }
+    let (r, phi) = if x.abs() > y.abs() {
+        (x, (PI / 4.0) * (y / x))
+    } else {
+        (y, (PI / 2.0) - (PI / 4.0) * (x / y))
+    };
+    let (s, c) = phi.sin_cos();
+    Vec2::new(r * c, r * s)
+}
+
+/// Cosine-weighted hemisphere around +z (Malley's method); pdf = cos(theta) / pi.
+#[inline]
+pub fn square_to_cosine_hemisphere(u: Vec2) -> Vec3 {
+    let d = square_to_uniform_disk_concentric(u);
+    let z = safe_sqrt(1.0 - d.length_squared());
+    Vec3::new(d.x, d.y, z)
+}
+
+/// Uniform direction on the unit sphere; pdf = 1 / (4 pi).
+#[inline]
+pub fn square_to_uniform_sphere(u: Vec2) -> Vec3 {
+    let z = 1.0 - 2.0 * u.y;
+    let r = safe_sqrt(1.0 - z * z);
+    let (s, c) = (2.0 * PI * u.x).sin_cos();
+    Vec3::new(r * c, r * s, z)
+}
+
+/// Uniform direction inside the cone of half-angle acos(`cos_max`) around +z;
+/// pdf = 1 / (2 pi (1 - cos_max)).
+#[inline]
+pub fn square_to_uniform_cone(u: Vec2, cos_max: f32) -> Vec3 {
+    let cos_t = (1.0 - u.y) + u.y * cos_max;
+    let sin_t = safe_sqrt(1.0 - cos_t * cos_t);
+    let (s, c) = (2.0 * PI * u.x).sin_cos();
+    Vec3::new(sin_t * c, sin_t * s, cos_t)
+}
+
+/// Uniform point on a triangle as barycentrics (b0, b1); b2 = 1 - b0 - b1.
+#[inline]
+pub fn square_to_uniform_triangle(u: Vec2) -> Vec2 {
+    let su0 = safe_sqrt(u.x);
+    Vec2::new(1.0 - su0, u.y * su0)
+}
+
+/// Power heuristic with exponent 2 (Veach 1997, eq. 9.13), written to stay finite when a pdf is
+/// infinite or both are 0.
+#[inline]
+pub fn mis_power(a: f32, b: f32) -> f32 {
+    let a2 = a * a;
+    let b2 = b * b;
+    let w = a2 / (a2 + b2);
+    if w.is_finite() {
+        w
+    } else if a2.is_infinite() {
+        1.0
+    } else {
+        0.0
+    }
+}
+
+/// sRGB transfer function, encoded -> linear.
+#[inline]
+pub fn srgb_to_linear(v: f32) -> f32 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// sRGB transfer function, linear -> encoded.
+#[inline]
+pub fn linear_to_srgb(v: f32) -> f32 {
+    if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// 32-bit integer hash (Wellons' lowbias32), used to derive decorrelated seeds.
+#[inline]
+pub fn hash_u32(mut x: u32) -> u32 {
+    x ^= x >> 16;
+    x = x.wrapping_mul(0x7feb_352d);
+    x ^= x >> 15;
+    x = x.wrapping_mul(0x846c_a68b);
+    x ^= x >> 16;
+    x
+}
+
+/// Hash of several words, order-sensitive.
+#[inline]
+pub fn hash_words(words: &[u32]) -> u32 {
+    let mut h = 0x9e37_79b9u32;
+    for &w in words {
+        h = hash_u32(
+            h ^ w
+                .wrapping_add(0x9e37_79b9)
+                .wrapping_add(h << 6)
+                .wrapping_add(h >> 2),
+        );
+    }
+    h
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_are_orthonormal_for_all_normals() {
+        for i in 0..1000 {
+            let u = Vec2::new((i as f32 * 0.618_034) % 1.0, (i as f32 * 0.414_213) % 1.0);
+            let n = square_to_uniform_sphere(u);
+            let f = Frame::from_normal(n);
+            assert!((f.s.length() - 1.0).abs() < 1e-5);
+            assert!((f.t.length() - 1.0).abs() < 1e-5);
+            assert!(f.s.dot(f.t).abs() < 1e-5 && f.s.dot(n).abs() < 1e-5);
+            let v = Vec3::new(0.3, -0.5, 0.81).normalize();
+            assert!((f.to_world(f.to_local(v)) - v).length() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn next_float_moves_one_ulp() {
+        assert!(next_float_up(1.0) > 1.0 && next_float_down(1.0) < 1.0);
+        assert!(next_float_up(0.0) > 0.0 && next_float_down(0.0) < 0.0);
+        assert!(next_float_up(-1.0) > -1.0);
+    }
+
+    #[test]
+    fn mis_power_is_finite() {
+        assert_eq!(mis_power(0.0, 0.0), 0.0);
+        assert_eq!(mis_power(f32::INFINITY, 1.0), 1.0);
+        assert!((mis_power(1.0, 1.0) - 0.5).abs() < 1e-7);
+    }
+}

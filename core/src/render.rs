@@ -1,0 +1,169 @@
+//! Rendering regions (a rectangle of pixels x a range of sample indices) into exact partial
+//! accumulations, and whole images from many regions in parallel.
+
+use std::sync::Mutex;
+
+use glam::Vec2;
+use rayon::prelude::*;
+
+use crate::film::{Accum, Filter};
+use crate::integrator::{path, Stats};
+use crate::plan::CameraModel;
+use crate::sampler::SampleStream;
+use crate::scene::Scene;
+
+/// Pixels `[x0, x1) x [y0, y1)` of the output (cropped) image, samples `[s0, s1)` of each.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Region {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+    pub s0: u64,
+    pub s1: u64,
+}
+
+impl Region {
+    pub fn samples(&self) -> u64 {
+        (self.x1 - self.x0) as u64 * (self.y1 - self.y0) as u64 * (self.s1 - self.s0)
+    }
+}
+
+/// Every `tile` x `tile` tile crossed with every sample range of `spp_per_chunk` samples, pass
+/// by pass: all tiles of the first range before any tile of the second. A pure function.
+pub fn plan_regions(
+    width: u32,
+    height: u32,
+    spp: u64,
+    tile: u32,
+    spp_per_chunk: u64,
+) -> Vec<Region> {
+    let tile = tile.max(1);
+    let spp_per_chunk = spp_per_chunk.max(1);
+    let mut out = Vec::new();
+    let mut s0 = 0;
+    while s0 < spp {
+        let s1 = (s0 + spp_per_chunk).min(spp);
+        for y0 in (0..height).step_by(tile as usize) {
+            for x0 in (0..width).step_by(tile as usize) {
+                out.push(Region {
+                    x0,
+                    y0,
+                    x1: (x0 + tile).min(width),
+                    y1: (y0 + tile).min(height),
+                    s0,
+                    s1,
+                });
+            }
+        }
+        s0 = s1;
+    }
+    out
+}
+
+/// The accumulation rectangle of a region: the region grown by the filter's margin, clipped to
+/// the image.
+pub fn accum_rect(scene: &Scene, r: &Region) -> (u32, u32, u32, u32) {
+    let m = scene.film.filter.margin();
+    let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+    let x0 = r.x0.saturating_sub(m);
+    let y0 = r.y0.saturating_sub(m);
+    let x1 = (r.x1 + m).min(w);
+    let y1 = (r.y1 + m).min(h);
+    (x0, y0, x1 - x0, y1 - y0)
+}
+
+/// Renders one region into a partial accumulation over the region plus the filter margin.
+pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
+    let (ax, ay, aw, ah) = accum_rect(scene, r);
+    let mut acc = Accum::new(ax, ay, aw, ah);
+    let mut st = Stats::default();
+    let film = &scene.film;
+    let cam = &scene.camera;
+    let filter = film.filter;
+    let own_pixel = matches!(filter, Filter::Box { radius } if radius == 0.5);
+    let radius = filter.radius();
+    let (w, h) = (film.crop_width as i64, film.crop_height as i64);
+    for y in r.y0..r.y1 {
+        for x in r.x0..r.x1 {
+            let (fx_px, fy_px) = (x + film.crop_x, y + film.crop_y);
+            for i in r.s0..r.s1 {
+                let mut s = SampleStream::new(seed, fx_px, fy_px, i);
+                let [fx, fy, lx, ly] = s.next_4d();
+                let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
+                let ray = match scene.plan.camera {
+                    CameraModel::Pinhole => cam.ray_pinhole(pos),
+                    CameraModel::ThinLens {
+                        aperture_radius,
+                        focus_distance,
+                    } => {
+                        st.lens_samples += 1;
+                        let lens = crate::camera::ThinLens {
+                            aperture_radius,
+                            focus_distance,
+                        };
+                        cam.ray_thin_lens(&lens, pos, Vec2::new(lx, ly))
+                    }
+                };
+                let l = path::li(scene, ray, &mut s, &mut st);
+                st.samples += 1;
+                if !l.is_finite() {
+                    st.nonfinite += 1;
+                    continue;
+                }
+                acc.count_sample(x, y, l);
+                if own_pixel {
+                    acc.splat(x, y, 1.0, l);
+                    continue;
+                }
+                // Splat to every pixel whose centre lies within the filter radius.
+                let (px, py) = (x as f32 + fx, y as f32 + fy);
+                let jx0 = ((px - radius - 0.5).ceil() as i64).max(0);
+                let jx1 = ((px + radius - 0.5).floor() as i64).min(w - 1);
+                let jy0 = ((py - radius - 0.5).ceil() as i64).max(0);
+                let jy1 = ((py + radius - 0.5).floor() as i64).min(h - 1);
+                for jy in jy0..=jy1 {
+                    let wy = filter.eval(py - (jy as f32 + 0.5));
+                    if wy == 0.0 {
+                        continue;
+                    }
+                    for jx in jx0..=jx1 {
+                        let wx = filter.eval(px - (jx as f32 + 0.5));
+                        if wx != 0.0 {
+                            acc.splat(jx as u32, jy as u32, wx * wy, l);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    (acc, st)
+}
+
+/// Renders the whole image at `spp` samples per pixel on the current rayon pool, calling
+/// `progress(samples_done)` as regions finish. The result does not depend on `tile`,
+/// `spp_per_chunk` or the thread count.
+pub fn render_image(
+    scene: &Scene,
+    spp: u64,
+    seed: u64,
+    tile: u32,
+    spp_per_chunk: u64,
+    progress: &(dyn Fn(u64) + Sync),
+) -> (Accum, Stats) {
+    let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+    let regions = plan_regions(w, h, spp, tile, spp_per_chunk);
+    let total = Mutex::new((Accum::new(0, 0, w, h), Stats::default(), 0u64));
+    regions.par_iter().for_each(|r| {
+        let (acc, st) = render_region(scene, r, seed);
+        let mut g = total.lock().unwrap_or_else(|e| e.into_inner());
+        g.0.merge(&acc);
+        g.1.merge(&st);
+        g.2 += r.samples();
+        let done = g.2;
+        drop(g);
+        progress(done);
+    });
+    let (acc, st, _) = total.into_inner().unwrap_or_else(|e| e.into_inner());
+    (acc, st)
+}

@@ -1,0 +1,674 @@
+//! Turns the parsed XML tree into a [`Scene`], with Mitsuba's plugin names, parameters and
+//! defaults. Anything the builder does not consume is reported by `Doc::check_all_used`.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use glam::{Mat3, Mat4, Vec3};
+
+use super::xml::{Doc, Pos};
+use super::{FilmSettings, PathSettings, Scene, SceneError};
+use crate::bsdf::Bsdf;
+use crate::camera::{tan_half_fov, Camera, ThinLens};
+use crate::film::Filter;
+use crate::geometry::{Accel, Disk, Geometry, Mesh, Shape, Sphere};
+use crate::light::Light;
+use crate::math::Rgb;
+use crate::plan::RenderPlan;
+use crate::texture::{Bitmap, BitmapTexture, FilterType, Texture, WrapMode};
+
+type R<T> = Result<T, SceneError>;
+
+struct Builder<'d> {
+    doc: &'d Doc,
+    bsdf_ids: HashMap<usize, u32>,
+    textures: HashMap<usize, Texture>,
+    bitmaps: HashMap<(std::path::PathBuf, bool), Arc<Bitmap>>,
+    bsdfs: Vec<Bsdf>,
+    shapes: Vec<Shape>,
+    lights: Vec<Light>,
+    assets: Vec<std::path::PathBuf>,
+}
+
+pub fn build(doc: &Doc) -> R<Scene> {
+    let mut b = Builder {
+        doc,
+        bsdf_ids: HashMap::new(),
+        textures: HashMap::new(),
+        bitmaps: HashMap::new(),
+        bsdfs: Vec::new(),
+        shapes: Vec::new(),
+        lights: Vec::new(),
+        assets: Vec::new(),
+    };
+    let root = doc.root;
+    for tag in ["film", "rfilter", "sampler"] {
+        if let Some((_, _, pos)) = doc.children(root, tag).first() {
+            return Err(doc.err(
+                *pos,
+                format!("<{tag}> belongs inside a <sensor>, not at scene level"),
+            ));
+        }
+    }
+    let sensors = doc.children(root, "sensor");
+    let (sensor, film, spp, seed, sampler_type) = match sensors.as_slice() {
+        [] => return Err(doc.err(doc.obj(root).pos, "the scene has no <sensor>")),
+        [(_, s, _)] => b.sensor(*s)?,
+        [_, (_, _, pos), ..] => {
+            return Err(doc.err(
+                *pos,
+                "more than one <sensor>: Furnace renders one camera per scene",
+            ))
+        }
+    };
+    let integrator = match doc.children(root, "integrator").as_slice() {
+        [] => PathSettings {
+            max_depth: u32::MAX,
+            rr_depth: 5,
+            hide_emitters: false,
+        },
+        [(_, i, _)] => b.integrator(*i)?,
+        [_, (_, _, pos), ..] => return Err(doc.err(*pos, "more than one <integrator>")),
+    };
+    // Top-level BSDF and texture definitions are built even if unused, so errors surface.
+    for (_, i, _) in doc.children(root, "bsdf") {
+        b.bsdf(i)?;
+    }
+    for (_, i, _) in doc.children(root, "texture") {
+        b.texture(i)?;
+    }
+    for (_, i, _) in doc.children(root, "shape") {
+        b.shape(i)?;
+    }
+    for (_, i, pos) in doc.children(root, "emitter") {
+        b.emitter(i, pos)?;
+    }
+    doc.check_all_used(root)?;
+
+    let infinite_lights = (0..b.lights.len() as u32)
+        .filter(|&i| b.lights[i as usize].is_infinite())
+        .collect();
+    let accel = Accel::build(&b.shapes);
+    let mut scene = Scene {
+        file: doc.file.clone(),
+        camera: sensor,
+        film,
+        integrator,
+        spp,
+        seed,
+        sampler_type,
+        shapes: b.shapes,
+        bsdfs: b.bsdfs,
+        lights: b.lights,
+        infinite_lights,
+        accel,
+        plan: RenderPlan::default(),
+        assets: b.assets,
+    };
+    scene.plan = RenderPlan::derive(&scene);
+    Ok(scene)
+}
+
+impl Builder<'_> {
+    fn err(&self, pos: Pos, msg: impl Into<String>) -> SceneError {
+        self.doc.err(pos, msg)
+    }
+
+    fn unsupported_plugin(&self, i: usize, supported: &[&str]) -> SceneError {
+        let o = self.doc.obj(i);
+        self.err(
+            o.pos,
+            format!(
+                "unsupported {} plugin '{}' (supported: {})",
+                o.tag,
+                o.plugin,
+                supported.join(", ")
+            ),
+        )
+    }
+
+    fn positive_int(&self, i: usize, name: &str, default: i64) -> R<u32> {
+        let v = self.doc.int_or(i, name, default)?;
+        if v <= 0 || v > u32::MAX as i64 {
+            return Err(self.err(
+                self.doc.pos_of(i, name),
+                format!(
+                    "'{name}' of {} must be a positive integer, found {v}",
+                    self.doc.describe(i)
+                ),
+            ));
+        }
+        Ok(v as u32)
+    }
+
+    fn nonneg_float(&self, i: usize, name: &str, default: f32) -> R<f32> {
+        let v = self.doc.float_or(i, name, default)?;
+        if !(v >= 0.0) || !v.is_finite() {
+            return Err(self.err(
+                self.doc.pos_of(i, name),
+                format!(
+                    "'{name}' of {} must be a finite number >= 0, found {v}",
+                    self.doc.describe(i)
+                ),
+            ));
+        }
+        Ok(v)
+    }
+
+    fn sensor(&mut self, i: usize) -> R<(Camera, FilmSettings, u32, u64, String)> {
+        let doc = self.doc;
+        let plugin = doc.obj(i).plugin.clone();
+        if plugin != "perspective" && plugin != "thinlens" {
+            return Err(self.unsupported_plugin(i, &["perspective", "thinlens"]));
+        }
+        let film = match doc.children(i, "film").as_slice() {
+            [] => FilmSettings {
+                width: 768,
+                height: 576,
+                crop_x: 0,
+                crop_y: 0,
+                crop_width: 768,
+                crop_height: 576,
+                filter: Filter::Gaussian { stddev: 0.5 },
+            },
+            [(_, f, _)] => self.film(*f)?,
+            [_, (_, _, pos), ..] => {
+                return Err(self.err(*pos, "more than one <film> in the sensor"))
+            }
+        };
+        let (spp, seed, sampler_type) = match doc.children(i, "sampler").as_slice() {
+            [] => (4, 0, "independent".to_string()),
+            [(_, s, _)] => {
+                let known = [
+                    "independent",
+                    "stratified",
+                    "multijitter",
+                    "orthogonal",
+                    "ldsampler",
+                ];
+                if !known.contains(&doc.obj(*s).plugin.as_str()) {
+                    return Err(self.unsupported_plugin(*s, &known));
+                }
+                let spp = self.positive_int(*s, "sample_count", 4)?;
+                let seed = doc.int_or(*s, "seed", 0)?;
+                (spp, seed as u64, doc.obj(*s).plugin.clone())
+            }
+            [_, (_, _, pos), ..] => {
+                return Err(self.err(*pos, "more than one <sampler> in the sensor"))
+            }
+        };
+        let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
+        for (k, axis) in [to_world.x_axis, to_world.y_axis, to_world.z_axis]
+            .iter()
+            .enumerate()
+        {
+            if (axis.truncate().length() - 1.0).abs() > 1e-3 {
+                return Err(self.err(
+                    doc.pos_of(i, "to_world"),
+                    format!(
+                        "the sensor's to_world must not scale (axis {k} has length {})",
+                        axis.truncate().length()
+                    ),
+                ));
+            }
+        }
+        let fov = doc.float(i, "fov")?.ok_or_else(|| {
+            self.err(
+                doc.obj(i).pos,
+                format!("{} needs a 'fov' (degrees)", doc.describe(i)),
+            )
+        })?;
+        if !(fov > 0.0 && fov < 180.0) {
+            return Err(self.err(
+                doc.pos_of(i, "fov"),
+                format!("'fov' must lie in (0, 180) degrees, found {fov}"),
+            ));
+        }
+        let axis = doc.string(i, "fov_axis")?.unwrap_or_else(|| "x".into());
+        let tan_half = tan_half_fov(fov, &axis, film.width, film.height).ok_or_else(|| {
+            self.err(
+                doc.pos_of(i, "fov_axis"),
+                format!("unknown fov_axis '{axis}' (expected x, y, diagonal, smaller or larger)"),
+            )
+        })?;
+        let near_clip = self.nonneg_float(i, "near_clip", 0.01)?;
+        let far_clip = doc.float_or(i, "far_clip", 10000.0)?;
+        if !(far_clip > near_clip) {
+            return Err(self.err(doc.pos_of(i, "far_clip"), "far_clip must exceed near_clip"));
+        }
+        let lens = if plugin == "thinlens" {
+            let aperture_radius = doc.float(i, "aperture_radius")?.ok_or_else(|| {
+                self.err(
+                    doc.obj(i).pos,
+                    "thinlens needs 'aperture_radius' (world units)",
+                )
+            })?;
+            if !(aperture_radius >= 0.0) {
+                return Err(self.err(
+                    doc.pos_of(i, "aperture_radius"),
+                    "'aperture_radius' must be >= 0",
+                ));
+            }
+            let focus_distance = doc.float_or(i, "focus_distance", far_clip)?;
+            if !(focus_distance > 0.0) {
+                return Err(self.err(
+                    doc.pos_of(i, "focus_distance"),
+                    "'focus_distance' must be > 0",
+                ));
+            }
+            Some(ThinLens {
+                aperture_radius,
+                focus_distance,
+            })
+        } else {
+            None
+        };
+        let camera = Camera {
+            to_world,
+            film_size: (film.width, film.height),
+            tan_half,
+            near_clip,
+            far_clip,
+            lens,
+        };
+        Ok((camera, film, spp, seed, sampler_type))
+    }
+
+    fn film(&mut self, i: usize) -> R<FilmSettings> {
+        let doc = self.doc;
+        if doc.obj(i).plugin != "hdrfilm" {
+            return Err(self.unsupported_plugin(i, &["hdrfilm"]));
+        }
+        let width = self.positive_int(i, "width", 768)?;
+        let height = self.positive_int(i, "height", 576)?;
+        let crop_x = doc.int_or(i, "crop_offset_x", 0)?;
+        let crop_y = doc.int_or(i, "crop_offset_y", 0)?;
+        let crop_w = doc.int_or(i, "crop_width", width as i64 - crop_x)?;
+        let crop_h = doc.int_or(i, "crop_height", height as i64 - crop_y)?;
+        if crop_x < 0
+            || crop_y < 0
+            || crop_w <= 0
+            || crop_h <= 0
+            || crop_x + crop_w > width as i64
+            || crop_y + crop_h > height as i64
+        {
+            return Err(self.err(
+                doc.obj(i).pos,
+                format!("crop window ({crop_x}, {crop_y}) size {crop_w} x {crop_h} does not fit in the {width} x {height} film"),
+            ));
+        }
+        if let Some(pf) = doc.string(i, "pixel_format")? {
+            if pf != "rgb" {
+                return Err(self.err(
+                    doc.pos_of(i, "pixel_format"),
+                    format!("pixel_format '{pf}' is not supported: Furnace writes 'rgb'"),
+                ));
+            }
+        }
+        if let Some(cf) = doc.string(i, "component_format")? {
+            if cf != "float32" && cf != "float16" {
+                return Err(self.err(doc.pos_of(i, "component_format"), format!("component_format '{cf}' is not supported (float16 or float32; Furnace writes float32)")));
+            }
+        }
+        let filter = match doc.children(i, "rfilter").as_slice() {
+            [] => Filter::Gaussian { stddev: 0.5 },
+            [(_, f, _)] => match doc.obj(*f).plugin.as_str() {
+                "box" => {
+                    let radius = doc.float_or(*f, "radius", 0.5)?;
+                    if !(radius > 0.0 && radius <= 8.0) {
+                        return Err(
+                            self.err(doc.pos_of(*f, "radius"), "box radius must lie in (0, 8]")
+                        );
+                    }
+                    Filter::Box { radius }
+                }
+                "gaussian" => {
+                    let stddev = doc.float_or(*f, "stddev", 0.5)?;
+                    if !(stddev > 0.0 && stddev <= 2.0) {
+                        return Err(self.err(
+                            doc.pos_of(*f, "stddev"),
+                            "gaussian stddev must lie in (0, 2]",
+                        ));
+                    }
+                    Filter::Gaussian { stddev }
+                }
+                _ => return Err(self.unsupported_plugin(*f, &["box", "gaussian"])),
+            },
+            [_, (_, _, pos), ..] => return Err(self.err(*pos, "more than one <rfilter>")),
+        };
+        Ok(FilmSettings {
+            width,
+            height,
+            crop_x: crop_x as u32,
+            crop_y: crop_y as u32,
+            crop_width: crop_w as u32,
+            crop_height: crop_h as u32,
+            filter,
+        })
+    }
+
+    fn integrator(&mut self, i: usize) -> R<PathSettings> {
+        let doc = self.doc;
+        if doc.obj(i).plugin != "path" {
+            return Err(self.unsupported_plugin(i, &["path"]));
+        }
+        let max_depth = doc.int_or(i, "max_depth", -1)?;
+        if max_depth < -1 {
+            return Err(self.err(
+                doc.pos_of(i, "max_depth"),
+                "max_depth must be -1 (unlimited) or >= 0",
+            ));
+        }
+        let rr_depth = doc.int_or(i, "rr_depth", 5)?;
+        if rr_depth <= 0 {
+            return Err(self.err(doc.pos_of(i, "rr_depth"), "rr_depth must be > 0"));
+        }
+        Ok(PathSettings {
+            max_depth: if max_depth < 0 {
+                u32::MAX
+            } else {
+                max_depth.min(u32::MAX as i64) as u32
+            },
+            rr_depth: rr_depth.min(u32::MAX as i64) as u32,
+            hide_emitters: doc.boolean_or(i, "hide_emitters", false)?,
+        })
+    }
+
+    /// A colour parameter: `<rgb>`/`<float>`, or a nested/referenced `<texture>`.
+    fn color(&mut self, i: usize, name: &str, default: Rgb) -> R<Texture> {
+        if self.doc.has(i, name) {
+            let c = self.doc.rgb(i, name)?.unwrap_or(default);
+            if !c.is_finite() {
+                return Err(self.err(self.doc.pos_of(i, name), format!("'{name}' must be finite")));
+            }
+            return Ok(Texture::Const(c));
+        }
+        match self.doc.named_child(i, name) {
+            Some(t) if self.doc.obj(t).tag == "texture" => self.texture(t),
+            Some(t) => Err(self.err(
+                self.doc.obj(t).pos,
+                format!(
+                    "'{name}' of {} must be a colour or a texture, found a {}",
+                    self.doc.describe(i),
+                    self.doc.obj(t).tag
+                ),
+            )),
+            None => Ok(Texture::Const(default)),
+        }
+    }
+
+    fn texture(&mut self, i: usize) -> R<Texture> {
+        if let Some(t) = self.textures.get(&i) {
+            return Ok(t.clone());
+        }
+        let doc = self.doc;
+        let o = doc.obj(i);
+        let tex = match o.plugin.as_str() {
+            "bitmap" => {
+                let rel = doc
+                    .string(i, "filename")?
+                    .ok_or_else(|| self.err(o.pos, "bitmap needs a 'filename'"))?;
+                let path = doc.resolve_path(doc.pos_of(i, "filename"), &rel)?;
+                let raw = doc.boolean_or(i, "raw", false)?;
+                let filter = match doc.string(i, "filter_type")?.as_deref() {
+                    None | Some("bilinear") => FilterType::Bilinear,
+                    Some("nearest") => FilterType::Nearest,
+                    Some(other) => {
+                        return Err(self.err(
+                            doc.pos_of(i, "filter_type"),
+                            format!("unknown filter_type '{other}' (expected bilinear or nearest)"),
+                        ))
+                    }
+                };
+                let wrap = match doc.string(i, "wrap_mode")? {
+                    None => WrapMode::Repeat,
+                    Some(w) => WrapMode::parse(&w).ok_or_else(|| {
+                        self.err(
+                            doc.pos_of(i, "wrap_mode"),
+                            format!("unknown wrap_mode '{w}' (expected repeat, mirror or clamp)"),
+                        )
+                    })?,
+                };
+                let m = doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY);
+                let to_uv = [
+                    [m.x_axis.x, m.y_axis.x, m.w_axis.x],
+                    [m.x_axis.y, m.y_axis.y, m.w_axis.y],
+                ];
+                let key = (path.clone(), raw);
+                let bitmap = match self.bitmaps.get(&key) {
+                    Some(b) => b.clone(),
+                    None => {
+                        let b = Arc::new(Bitmap::load(&path, raw).map_err(|e| {
+                            self.err(
+                                doc.pos_of(i, "filename"),
+                                format!("cannot load texture '{rel}': {e}"),
+                            )
+                        })?);
+                        self.assets.push(path.clone());
+                        self.bitmaps.insert(key, b.clone());
+                        b
+                    }
+                };
+                Texture::Bitmap(Arc::new(BitmapTexture {
+                    bitmap,
+                    filter,
+                    wrap,
+                    to_uv,
+                }))
+            }
+            _ => return Err(self.unsupported_plugin(i, &["bitmap"])),
+        };
+        self.textures.insert(i, tex.clone());
+        Ok(tex)
+    }
+
+    fn bsdf(&mut self, i: usize) -> R<u32> {
+        if let Some(&id) = self.bsdf_ids.get(&i) {
+            return Ok(id);
+        }
+        let b = self.bsdf_value(i)?;
+        let id = self.bsdfs.len() as u32;
+        self.bsdfs.push(b);
+        self.bsdf_ids.insert(i, id);
+        Ok(id)
+    }
+
+    fn bsdf_value(&mut self, i: usize) -> R<Bsdf> {
+        let doc = self.doc;
+        Ok(match doc.obj(i).plugin.as_str() {
+            "diffuse" => Bsdf::Diffuse {
+                reflectance: self.color(i, "reflectance", Rgb::splat(0.5))?,
+            },
+            "twosided" => {
+                let nested = doc.children(i, "bsdf");
+                match nested.as_slice() {
+                    [(_, f, _)] => {
+                        let front = self.bsdf_value(*f)?;
+                        Bsdf::TwoSided {
+                            front: Box::new(front.clone()),
+                            back: Box::new(front),
+                        }
+                    }
+                    [(_, f, _), (_, bk, _)] => Bsdf::TwoSided {
+                        front: Box::new(self.bsdf_value(*f)?),
+                        back: Box::new(self.bsdf_value(*bk)?),
+                    },
+                    _ => {
+                        return Err(
+                            self.err(doc.obj(i).pos, "twosided needs one or two nested <bsdf>s")
+                        )
+                    }
+                }
+            }
+            _ => return Err(self.unsupported_plugin(i, &["diffuse", "twosided"])),
+        })
+    }
+
+    fn shape(&mut self, i: usize) -> R<()> {
+        let doc = self.doc;
+        let o = doc.obj(i);
+        let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
+        let flip_normals = doc.boolean_or(i, "flip_normals", false)?;
+        let mesh = |m: Mesh| -> Geometry {
+            let mut m = m;
+            m.transform(&to_world);
+            Geometry::Mesh(m)
+        };
+        let geometry = match o.plugin.as_str() {
+            "rectangle" => mesh(Mesh::rectangle()),
+            "cube" => mesh(Mesh::cube()),
+            "obj" | "ply" => {
+                let rel = doc
+                    .string(i, "filename")?
+                    .ok_or_else(|| self.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
+                let fpos = doc.pos_of(i, "filename");
+                let path = doc.resolve_path(fpos, &rel)?;
+                let face_normals = doc.boolean_or(i, "face_normals", false)?;
+                let loaded = if o.plugin == "obj" {
+                    let flip_v = doc.boolean_or(i, "flip_tex_coords", true)?;
+                    Mesh::load_obj(&path, flip_v)
+                } else {
+                    Mesh::load_ply(&path)
+                };
+                let mut m = loaded
+                    .and_then(Mesh::validate)
+                    .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+                if face_normals {
+                    m.normals.clear();
+                }
+                self.assets.push(path);
+                mesh(m)
+            }
+            "sphere" => {
+                let center = doc.point(i, "center")?.unwrap_or(Vec3::ZERO);
+                let radius = doc.float_or(i, "radius", 1.0)?;
+                if !(radius > 0.0) || !radius.is_finite() {
+                    return Err(self.err(
+                        doc.pos_of(i, "radius"),
+                        format!("sphere radius must be > 0, found {radius}"),
+                    ));
+                }
+                let m = to_world
+                    * Mat4::from_translation(center)
+                    * Mat4::from_scale(Vec3::splat(radius));
+                let c = m.transform_point3(Vec3::ZERO);
+                let axes = [
+                    m.x_axis.truncate(),
+                    m.y_axis.truncate(),
+                    m.z_axis.truncate(),
+                ];
+                let r = axes[0].length();
+                if axes.iter().any(|a| (a.length() - r).abs() > 1e-4 * r) {
+                    return Err(self.err(
+                        doc.pos_of(i, "to_world"),
+                        "sphere to_world must scale uniformly",
+                    ));
+                }
+                let rot = Mat3::from_cols(axes[0] / r, axes[1] / r, axes[2] / r).transpose();
+                Geometry::Sphere(Sphere {
+                    center: c,
+                    radius: r,
+                    rot,
+                })
+            }
+            "disk" => Geometry::Disk(Disk::new(to_world)),
+            _ => {
+                return Err(self
+                    .unsupported_plugin(i, &["obj", "ply", "rectangle", "cube", "sphere", "disk"]))
+            }
+        };
+        let bsdf = match doc.children(i, "bsdf").as_slice() {
+            [] => {
+                // Mitsuba's default material: diffuse, reflectance 0.5.
+                let id = self.bsdfs.len() as u32;
+                self.bsdfs.push(Bsdf::Diffuse {
+                    reflectance: Texture::Const(Rgb::splat(0.5)),
+                });
+                id
+            }
+            [(_, b, _)] => self.bsdf(*b)?,
+            [_, (_, _, pos), ..] => return Err(self.err(*pos, "a shape takes one <bsdf>")),
+        };
+        let shape_idx = self.shapes.len() as u32;
+        let mut shape = Shape {
+            geometry,
+            bsdf,
+            light: None,
+            flip_normals,
+            name: o.id.clone().unwrap_or_else(|| o.plugin.clone()),
+        };
+        match doc.children(i, "emitter").as_slice() {
+            [] => {}
+            [(_, e, _)] => {
+                if doc.obj(*e).plugin != "area" {
+                    return Err(self.err(
+                        doc.obj(*e).pos,
+                        format!(
+                            "emitter '{}' cannot be attached to a shape (only 'area')",
+                            doc.obj(*e).plugin
+                        ),
+                    ));
+                }
+                let radiance = self.color(*e, "radiance", Rgb::ONE)?;
+                shape.light = Some(self.lights.len() as u32);
+                self.lights.push(Light::area(shape_idx, &shape, radiance));
+            }
+            [_, (_, _, pos), ..] => return Err(self.err(*pos, "a shape takes one <emitter>")),
+        }
+        self.shapes.push(shape);
+        Ok(())
+    }
+
+    fn emitter(&mut self, i: usize, pos: Pos) -> R<()> {
+        let doc = self.doc;
+        let light = match doc.obj(i).plugin.as_str() {
+            "point" => {
+                let intensity = match self.color(i, "intensity", Rgb::ONE)? {
+                    Texture::Const(c) => c,
+                    _ => {
+                        return Err(self.err(
+                            doc.pos_of(i, "intensity"),
+                            "point intensity must be a colour",
+                        ))
+                    }
+                };
+                let m = doc.transform(i, "to_world")?;
+                let p = doc.point(i, "position")?;
+                let position = match (m, p) {
+                    (Some(_), Some(_)) => {
+                        return Err(self.err(
+                            pos,
+                            "point emitter: give 'position' or 'to_world', not both",
+                        ))
+                    }
+                    (Some(m), None) => m.transform_point3(Vec3::ZERO),
+                    (None, Some(p)) => p,
+                    (None, None) => Vec3::ZERO,
+                };
+                Light::Point {
+                    position,
+                    intensity,
+                }
+            }
+            "constant" => match self.color(i, "radiance", Rgb::ONE)? {
+                Texture::Const(radiance) => Light::Constant { radiance },
+                _ => {
+                    return Err(self.err(
+                        doc.pos_of(i, "radiance"),
+                        "constant radiance must be a colour",
+                    ))
+                }
+            },
+            "area" => {
+                return Err(self.err(pos, "an 'area' emitter must be nested inside a <shape>"))
+            }
+            _ => {
+                return Err(
+                    self.unsupported_plugin(i, &["point", "constant", "area (inside a shape)"])
+                )
+            }
+        };
+        self.lights.push(light);
+        Ok(())
+    }
+}

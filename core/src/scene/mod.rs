@@ -1,0 +1,120 @@
+//! Scenes: Mitsuba 3 XML files loaded into everything the renderer needs.
+
+pub mod build;
+pub mod xml;
+
+use std::path::{Path, PathBuf};
+
+use crate::bsdf::Bsdf;
+use crate::camera::Camera;
+use crate::film::Filter;
+use crate::geometry::{Accel, Interaction, Ray, Shape};
+use crate::light::Light;
+use crate::plan::RenderPlan;
+
+pub use xml::Pos;
+
+/// A scene that cannot be loaded: the file, the line and column (0 when the whole file is at
+/// fault), and what was expected.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("{}{}: {message}", file.display(), if line > &0 { format!(":{line}:{col}") } else { String::new() })]
+pub struct SceneError {
+    pub file: PathBuf,
+    pub line: u32,
+    pub col: u32,
+    pub message: String,
+}
+
+impl SceneError {
+    pub fn at(file: &Path, pos: Pos, message: impl Into<String>) -> SceneError {
+        SceneError {
+            file: file.to_path_buf(),
+            line: pos.line,
+            col: pos.col,
+            message: message.into(),
+        }
+    }
+
+    pub fn file(file: &Path, message: impl Into<String>) -> SceneError {
+        SceneError {
+            file: file.to_path_buf(),
+            line: 0,
+            col: 0,
+            message: message.into(),
+        }
+    }
+}
+
+/// The output image: full film size, the cropped window we render, and the pixel filter.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FilmSettings {
+    pub width: u32,
+    pub height: u32,
+    pub crop_x: u32,
+    pub crop_y: u32,
+    pub crop_width: u32,
+    pub crop_height: u32,
+    pub filter: Filter,
+}
+
+/// Mitsuba's `path` integrator settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PathSettings {
+    /// Longest path, in vertices after the camera (`u32::MAX` for Mitsuba's -1).
+    pub max_depth: u32,
+    /// Depth from which Russian roulette starts.
+    pub rr_depth: u32,
+    /// Hide directly visible emitters.
+    pub hide_emitters: bool,
+}
+
+/// A loaded scene.
+pub struct Scene {
+    pub file: PathBuf,
+    pub camera: Camera,
+    pub film: FilmSettings,
+    pub integrator: PathSettings,
+    /// Samples per pixel the scene asks for (`sample_count`).
+    pub spp: u32,
+    /// Sampler seed from the scene (`seed`, default 0).
+    pub seed: u64,
+    /// The sampler plugin the scene named (Furnace always uses Owen-scrambled Sobol).
+    pub sampler_type: String,
+    pub shapes: Vec<Shape>,
+    pub bsdfs: Vec<Bsdf>,
+    pub lights: Vec<Light>,
+    /// Indices into `lights` of lights at infinity (seen by escaping rays).
+    pub infinite_lights: Vec<u32>,
+    pub accel: Accel,
+    pub plan: RenderPlan,
+    /// Every file the scene reads besides itself (for scene bundles).
+    pub assets: Vec<PathBuf>,
+}
+
+impl Scene {
+    /// Loads a scene file; `defines` override `<default>` parameters (`-D name=value`).
+    pub fn load(path: &Path, defines: &[(String, String)]) -> Result<Scene, SceneError> {
+        let doc = xml::parse_file(path, defines)?;
+        build::build(&doc)
+    }
+
+    /// Loads scene XML held in memory; relative asset paths resolve against `path`'s folder.
+    pub fn load_str(
+        text: &str,
+        path: &Path,
+        defines: &[(String, String)],
+    ) -> Result<Scene, SceneError> {
+        let doc = xml::parse_str(text, path, defines)?;
+        build::build(&doc)
+    }
+
+    #[inline]
+    pub fn intersect(&self, ray: &Ray) -> Option<Interaction> {
+        self.accel.intersect(&self.shapes, ray)
+    }
+
+    #[inline]
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        self.accel.occluded(&self.shapes, ray)
+    }
+}

@@ -1,0 +1,208 @@
+//! Linear-RGB texel grids loaded from image files, with Mitsuba's wrap modes.
+
+use std::path::Path;
+
+use glam::Vec2;
+
+use crate::math::{srgb_to_linear, Rgb};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FilterType {
+    Nearest,
+    Bilinear,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WrapMode {
+    Repeat,
+    Mirror,
+    Clamp,
+}
+
+impl WrapMode {
+    pub fn parse(s: &str) -> Option<WrapMode> {
+        match s {
+            "repeat" => Some(WrapMode::Repeat),
+            "mirror" => Some(WrapMode::Mirror),
+            "clamp" => Some(WrapMode::Clamp),
+            _ => None,
+        }
+    }
+
+    #[inline]
+    fn apply(self, i: i64, n: i64) -> usize {
+        (match self {
+            WrapMode::Repeat => i.rem_euclid(n),
+            WrapMode::Clamp => i.clamp(0, n - 1),
+            WrapMode::Mirror => {
+                let k = i.rem_euclid(2 * n);
+                if k >= n {
+                    2 * n - 1 - k
+                } else {
+                    k
+                }
+            }
+        }) as usize
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BitmapError {
+    #[error("cannot read image: {0}")]
+    Image(#[from] image::ImageError),
+    #[error("cannot read EXR: {0}")]
+    Exr(#[from] exr::error::Error),
+    #[error("image is empty")]
+    Empty,
+    #[error("image has {0} non-finite texels")]
+    NonFinite(usize),
+}
+
+/// Linear RGB texels, row 0 at the top.
+#[derive(Clone, Debug)]
+pub struct Bitmap {
+    pub width: usize,
+    pub height: usize,
+    pub texels: Vec<Rgb>,
+}
+
+impl Bitmap {
+    /// Loads PNG, JPEG, HDR or EXR. Integer formats are sRGB-decoded unless `raw`.
+    pub fn load(path: &Path, raw: bool) -> Result<Bitmap, BitmapError> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        let bmp = if ext == "exr" {
+            Self::load_exr(path)?
+        } else {
+            let img = image::ImageReader::open(path)
+                .map_err(image::ImageError::IoError)?
+                .with_guessed_format()
+                .map_err(image::ImageError::IoError)?
+                .decode()?;
+            let is_float = matches!(
+                img.color(),
+                image::ColorType::Rgb32F | image::ColorType::Rgba32F
+            );
+            let rgb = img.to_rgb32f(); // normalises integers to [0, 1]; no linearisation
+            let decode = !is_float && !raw;
+            let texels = rgb
+                .pixels()
+                .map(|p| {
+                    let c = Rgb::new(p[0], p[1], p[2]);
+                    if decode {
+                        Rgb::new(
+                            srgb_to_linear(c.x),
+                            srgb_to_linear(c.y),
+                            srgb_to_linear(c.z),
+                        )
+                    } else {
+                        c
+                    }
+                })
+                .collect();
+            Bitmap {
+                width: rgb.width() as usize,
+                height: rgb.height() as usize,
+                texels,
+            }
+        };
+        if bmp.width == 0 || bmp.height == 0 {
+            return Err(BitmapError::Empty);
+        }
+        let bad = bmp.texels.iter().filter(|t| !t.is_finite()).count();
+        if bad > 0 {
+            return Err(BitmapError::NonFinite(bad));
+        }
+        Ok(bmp)
+    }
+
+    fn load_exr(path: &Path) -> Result<Bitmap, BitmapError> {
+        use exr::prelude::*;
+        let img = read_first_rgba_layer_from_file(
+            path,
+            |res, _| Bitmap {
+                width: res.width(),
+                height: res.height(),
+                texels: vec![Rgb::ZERO; res.width() * res.height()],
+            },
+            |b: &mut Bitmap, pos, (r, g, bl, _a): (f32, f32, f32, f32)| {
+                let w = b.width;
+                b.texels[pos.y() * w + pos.x()] = Rgb::new(r, g, bl);
+            },
+        )?;
+        Ok(img.layer_data.channel_data.pixels)
+    }
+
+    #[inline]
+    pub fn texel(&self, x: usize, y: usize) -> Rgb {
+        self.texels[y * self.width + x]
+    }
+
+    #[inline]
+    pub fn nearest(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
+        let x = wrap.apply((uv.x * self.width as f32).floor() as i64, self.width as i64);
+        let y = wrap.apply(
+            (uv.y * self.height as f32).floor() as i64,
+            self.height as i64,
+        );
+        self.texel(x, y)
+    }
+
+    #[inline]
+    pub fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
+        let px = uv.x * self.width as f32 - 0.5;
+        let py = uv.y * self.height as f32 - 0.5;
+        let (fx0, fy0) = (px.floor(), py.floor());
+        let (tx, ty) = (px - fx0, py - fy0);
+        let (w, h) = (self.width as i64, self.height as i64);
+        let (x0, y0) = (fx0 as i64, fy0 as i64);
+        let x = [wrap.apply(x0, w), wrap.apply(x0 + 1, w)];
+        let y = [wrap.apply(y0, h), wrap.apply(y0 + 1, h)];
+        let top = self.texel(x[0], y[0]) * (1.0 - tx) + self.texel(x[1], y[0]) * tx;
+        let bottom = self.texel(x[0], y[1]) * (1.0 - tx) + self.texel(x[1], y[1]) * tx;
+        top * (1.0 - ty) + bottom * ty
+    }
+
+    pub fn mean(&self) -> Rgb {
+        let s = self
+            .texels
+            .iter()
+            .fold(glam::DVec3::ZERO, |a, t| a + t.as_dvec3());
+        (s / self.texels.len() as f64).as_vec3()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wrap_modes() {
+        assert_eq!(WrapMode::Repeat.apply(-1, 4), 3);
+        assert_eq!(WrapMode::Clamp.apply(-1, 4), 0);
+        assert_eq!(WrapMode::Mirror.apply(-1, 4), 0);
+        assert_eq!(WrapMode::Mirror.apply(4, 4), 3);
+        assert_eq!(WrapMode::Mirror.apply(9, 4), 1);
+    }
+
+    #[test]
+    fn bilinear_hits_texel_centres_exactly() {
+        let b = Bitmap {
+            width: 2,
+            height: 1,
+            texels: vec![Rgb::splat(0.0), Rgb::splat(1.0)],
+        };
+        assert_eq!(
+            b.bilinear(Vec2::new(0.25, 0.5), WrapMode::Clamp),
+            Rgb::splat(0.0)
+        );
+        assert_eq!(
+            b.bilinear(Vec2::new(0.75, 0.5), WrapMode::Clamp),
+            Rgb::splat(1.0)
+        );
+        assert!((b.bilinear(Vec2::new(0.5, 0.5), WrapMode::Clamp).x - 0.5).abs() < 1e-6);
+    }
+}

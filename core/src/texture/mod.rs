@@ -1,0 +1,68 @@
+//! Textures: constants and Mitsuba's `bitmap` (PNG, JPEG, EXR, HDR).
+//!
+//! Bitmaps follow Mitsuba: uv (0, 0) is the top-left texel (row 0), texel centres sit at
+//! ((i + 0.5) / W, (j + 0.5) / H), 8-bit and 16-bit data are decoded from sRGB to linear per texel
+//! before interpolation (unless `raw`), and `to_uv` is an affine 2-D map applied first.
+
+pub mod bitmap;
+
+use std::sync::Arc;
+
+use glam::Vec2;
+
+use crate::math::Rgb;
+
+pub use bitmap::{Bitmap, BitmapError, FilterType, WrapMode};
+
+#[derive(Clone, Debug)]
+pub enum Texture {
+    Const(Rgb),
+    Bitmap(Arc<BitmapTexture>),
+}
+
+/// A bitmap with its lookup settings.
+#[derive(Debug)]
+pub struct BitmapTexture {
+    pub bitmap: Arc<Bitmap>,
+    pub filter: FilterType,
+    pub wrap: WrapMode,
+    /// Rows of the 2x3 affine `to_uv` map.
+    pub to_uv: [[f32; 3]; 2],
+}
+
+impl Texture {
+    #[inline]
+    pub fn eval(&self, uv: Vec2) -> Rgb {
+        match self {
+            Texture::Const(c) => *c,
+            Texture::Bitmap(b) => {
+                let m = &b.to_uv;
+                let uv = Vec2::new(
+                    m[0][0] * uv.x + m[0][1] * uv.y + m[0][2],
+                    m[1][0] * uv.x + m[1][1] * uv.y + m[1][2],
+                );
+                match b.filter {
+                    FilterType::Nearest => b.bitmap.nearest(uv, b.wrap),
+                    FilterType::Bilinear => b.bitmap.bilinear(uv, b.wrap),
+                }
+            }
+        }
+    }
+
+    /// True when the texture is the constant 0.
+    pub fn is_black(&self) -> bool {
+        matches!(self, Texture::Const(c) if *c == Rgb::ZERO)
+    }
+
+    pub fn is_bitmap(&self) -> bool {
+        matches!(self, Texture::Bitmap(_))
+    }
+
+    /// Mean value over the texture's domain (for constants, the constant).
+    pub fn mean(&self) -> Rgb {
+        match self {
+            Texture::Const(c) => *c,
+            Texture::Bitmap(b) => b.bitmap.mean(),
+        }
+    }
+}

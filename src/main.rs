@@ -1,0 +1,178 @@
+//! `furnace`: the one binary. It parses arguments and calls the libraries.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use furnace_core::{render_image, Image, Scene};
+
+#[derive(Parser)]
+#[command(
+    name = "furnace",
+    version,
+    about = "Furnace: a physically based renderer and its render farm"
+)]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Render a Mitsuba 3 scene on this machine: EXR plus a tonemapped PNG beside it.
+    Render(RenderArgs),
+    /// Compare an EXR against a reference EXR: RMSE, relMSE, mean luminance.
+    Compare { image: PathBuf, reference: PathBuf },
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// Scene file (Mitsuba 3 XML).
+    scene: PathBuf,
+    /// Samples per pixel (default: the scene's sample_count).
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Set a scene parameter, as Mitsuba's -D: `-D spp=16`.
+    #[arg(short = 'D', value_name = "NAME=VALUE")]
+    define: Vec<String>,
+    /// Output EXR (default: the scene's name with .exr, in the current folder).
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Sample seed (default: the scene sampler's seed).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Print the render plan and exit.
+    #[arg(long)]
+    plan: bool,
+    /// Tile size in pixels (does not change the image).
+    #[arg(long, default_value_t = 32)]
+    tile: u32,
+    /// Exposure of the PNG preview, in stops.
+    #[arg(long, default_value_t = 0.0)]
+    exposure: f32,
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.cmd {
+        Cmd::Render(a) => render(a),
+        Cmd::Compare { image, reference } => {
+            let a = Image::read_exr(&image)?;
+            let b = Image::read_exr(&reference)?;
+            let c = a.compare(&b).with_context(|| {
+                format!(
+                    "sizes differ: {}x{} vs {}x{}",
+                    a.width, a.height, b.width, b.height
+                )
+            })?;
+            println!("RMSE          {:.6}", c.rmse);
+            println!("relMSE        {:.6}", c.rel_mse);
+            println!(
+                "mean lum      {:.6} / reference {:.6} (ratio {:.4})",
+                c.mean_lum,
+                c.ref_mean_lum,
+                c.mean_lum / c.ref_mean_lum
+            );
+            Ok(())
+        }
+    }
+}
+
+fn parse_defines(defs: &[String]) -> Result<Vec<(String, String)>> {
+    defs.iter()
+        .map(|d| match d.split_once('=') {
+            Some((k, v)) if !k.is_empty() => Ok((k.to_string(), v.to_string())),
+            _ => bail!("-D expects NAME=VALUE, got '{d}'"),
+        })
+        .collect()
+}
+
+fn render(a: RenderArgs) -> Result<()> {
+    let defines = parse_defines(&a.define)?;
+    let t0 = Instant::now();
+    let scene = Scene::load(&a.scene, &defines)?;
+    tracing::info!(
+        "loaded {} in {:.2}s: {} shapes, {} primitives, {} lights",
+        a.scene.display(),
+        t0.elapsed().as_secs_f64(),
+        scene.shapes.len(),
+        scene.accel.prim_count(),
+        scene.lights.len()
+    );
+    if a.plan {
+        print!("{}", scene.plan);
+        return Ok(());
+    }
+    eprint!("{}", scene.plan);
+    let spp = a.spp.unwrap_or(scene.spp) as u64;
+    if spp == 0 {
+        bail!("--spp must be at least 1");
+    }
+    let seed = a.seed.unwrap_or(scene.seed);
+    let out = a.output.clone().unwrap_or_else(|| default_output(&a.scene));
+    let mut builder = rayon::ThreadPoolBuilder::new();
+    if let Some(n) = a.threads {
+        builder = builder.num_threads(n.max(1));
+    }
+    let pool = builder.build().context("cannot start render threads")?;
+    let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+    let total = w as u64 * h as u64 * spp;
+    let bar = indicatif::ProgressBar::new(total);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:40} {percent:>3}%  {human_pos}/{human_len} samples  {per_sec}  ETA {eta}",
+        )
+        .expect("static progress template"),
+    );
+    let t1 = Instant::now();
+    let (acc, stats) = pool.install(|| {
+        render_image(&scene, spp, seed, a.tile, 64, &|done| {
+            bar.set_position(done)
+        })
+    });
+    bar.finish_and_clear();
+    let secs = t1.elapsed().as_secs_f64();
+    let image = acc.develop();
+    image.write_exr(&out)?;
+    let png = out.with_extension("png");
+    image.write_png(&png, a.exposure)?;
+    tracing::info!(
+        "rendered {w}x{h} at {spp} spp in {secs:.2}s on {} threads: {:.3} Msamples/s",
+        pool.current_num_threads(),
+        total as f64 / secs / 1e6
+    );
+    if stats.nonfinite > 0 {
+        tracing::warn!(
+            "{} samples were NaN or infinite and were dropped",
+            stats.nonfinite
+        );
+    }
+    println!("wrote {} and {}", out.display(), png.display());
+    Ok(())
+}
+
+fn default_output(scene: &Path) -> PathBuf {
+    let stem = scene
+        .file_stem()
+        .map(|s| s.to_os_string())
+        .unwrap_or_else(|| "render".into());
+    PathBuf::from(stem).with_extension("exr")
+}
