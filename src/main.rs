@@ -159,10 +159,16 @@ fn render(a: RenderArgs) -> Result<()> {
         pool.current_num_threads(),
         total as f64 / secs / 1e6
     );
-    if stats.nonfinite > 0 {
+    tracing::info!(
+        "per sample: {:.2} rays, {:.2} shadow rays, {:.2} BSDF samples",
+        stats.rays as f64 / stats.samples as f64,
+        stats.shadow_rays as f64 / stats.samples as f64,
+        stats.bsdf_samples as f64 / stats.samples as f64
+    );
+    if stats.dropped > 0 {
         tracing::warn!(
-            "{} samples were NaN or infinite and were dropped",
-            stats.nonfinite
+            "{} samples were NaN, infinite or above 2^40 and were dropped",
+            stats.dropped
         );
     }
     println!("wrote {} and {}", out.display(), png.display());

@@ -2,15 +2,23 @@
 //!
 //! Each sample adds its filter-weighted radiance and its weight to every pixel within the
 //! filter's radius. Sums are kept in fixed point: every term is rounded once to a multiple of
-//! 2^-40 and added as an `i128`, so integer addition makes any split of the work (tiles,
-//! sample ranges, machines, arrival order) produce exactly the same bits. The range, 2^87,
-//! holds 10^14 samples of radiance 10^12; the resolution, 9e-13, is far below f32 precision
-//! of any visible radiance.
+//! 2^-40 (squared luminance: 2^-24) and added as an `i128` with wrapping arithmetic, which is
+//! exact, associative and commutative, so any split of the work (tiles, sample ranges,
+//! machines, arrival order) produces exactly the same bits.
+//!
+//! Range: a sample may carry radiance up to [`MAX_RADIANCE`] = 2^40 (1.1e12; a sample above it
+//! is dropped and counted, like a NaN). A pixel then holds 2^47 such samples before its
+//! radiance sum leaves i128, and 2^23 before its squared-luminance sum does. The resolution,
+//! 9e-13, is far below the f32 precision of any visible radiance.
 
 use crate::math::{luminance, Rgb};
 
-/// Fractional bits of the fixed-point sums.
+/// Fractional bits of the radiance and weight sums.
 pub const FIXED_BITS: i32 = 40;
+/// Fractional bits of the squared-luminance sums.
+pub const FIXED_BITS_LUM2: i32 = 24;
+/// The largest radiance (per channel) a single sample may carry.
+pub const MAX_RADIANCE: f32 = 1_099_511_627_776.0; // 2^40
 
 #[inline]
 pub fn to_fixed(v: f64) -> i128 {
@@ -20,6 +28,12 @@ pub fn to_fixed(v: f64) -> i128 {
 #[inline]
 pub fn from_fixed(v: i128) -> f64 {
     v as f64 * (-FIXED_BITS as f64).exp2()
+}
+
+/// Whether a sample's radiance can be accumulated: finite, and within [`MAX_RADIANCE`].
+#[inline]
+pub fn is_valid_sample(l: Rgb) -> bool {
+    l.is_finite() && l.abs().max_element() <= MAX_RADIANCE
 }
 
 /// Mitsuba's reconstruction filters (`rfilter`).
@@ -89,10 +103,10 @@ impl PixelSum {
     #[inline]
     fn add(&mut self, o: &PixelSum) {
         for c in 0..3 {
-            self.rgb[c] += o.rgb[c];
+            self.rgb[c] = self.rgb[c].wrapping_add(o.rgb[c]);
         }
-        self.weight += o.weight;
-        self.lum2 += o.lum2;
+        self.weight = self.weight.wrapping_add(o.weight);
+        self.lum2 = self.lum2.wrapping_add(o.lum2);
         self.count += o.count;
     }
 }
@@ -134,10 +148,10 @@ impl Accum {
         if let Some(i) = self.index(x, y) {
             let p = &mut self.pixels[i];
             let w64 = w as f64;
-            p.rgb[0] += to_fixed(w64 * l.x as f64);
-            p.rgb[1] += to_fixed(w64 * l.y as f64);
-            p.rgb[2] += to_fixed(w64 * l.z as f64);
-            p.weight += to_fixed(w64);
+            p.rgb[0] = p.rgb[0].wrapping_add(to_fixed(w64 * l.x as f64));
+            p.rgb[1] = p.rgb[1].wrapping_add(to_fixed(w64 * l.y as f64));
+            p.rgb[2] = p.rgb[2].wrapping_add(to_fixed(w64 * l.z as f64));
+            p.weight = p.weight.wrapping_add(to_fixed(w64));
         }
     }
 
@@ -147,7 +161,9 @@ impl Accum {
         if let Some(i) = self.index(x, y) {
             let lum = luminance(l) as f64;
             let p = &mut self.pixels[i];
-            p.lum2 += to_fixed(lum * lum);
+            p.lum2 = p
+                .lum2
+                .wrapping_add((lum * lum * (FIXED_BITS_LUM2 as f64).exp2()).round() as i128);
             p.count += 1;
         }
     }

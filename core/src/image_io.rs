@@ -7,21 +7,18 @@ use crate::math::{linear_to_srgb, luminance, Rgb};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ImageIoError {
-    #[error("{path}: {source}")]
+    #[error("{path}: {err}")]
     Exr {
         path: String,
-        source: exr::error::Error,
+        err: exr::error::Error,
     },
-    #[error("{path}: {source}")]
+    #[error("{path}: {err}")]
     Png {
         path: String,
-        source: image::ImageError,
+        err: image::ImageError,
     },
-    #[error("{path}: {source}")]
-    Io {
-        path: String,
-        source: std::io::Error,
-    },
+    #[error("{path}: {err}")]
+    Io { path: String, err: std::io::Error },
 }
 
 /// A linear RGB image, row 0 at the top.
@@ -51,13 +48,13 @@ impl Image {
             .write()
             .non_parallel()
             .to_file(&tmp)
-            .map_err(|source| ImageIoError::Exr {
+            .map_err(|err| ImageIoError::Exr {
                 path: path.display().to_string(),
-                source,
+                err,
             })?;
-        std::fs::rename(&tmp, path).map_err(|source| ImageIoError::Io {
+        std::fs::rename(&tmp, path).map_err(|err| ImageIoError::Io {
             path: path.display().to_string(),
-            source,
+            err,
         })
     }
 
@@ -84,13 +81,13 @@ impl Image {
             image::ExtendedColorType::Rgb8,
             image::ImageFormat::Png,
         )
-        .map_err(|source| ImageIoError::Png {
+        .map_err(|err| ImageIoError::Png {
             path: path.display().to_string(),
-            source,
+            err,
         })?;
-        std::fs::rename(&tmp, path).map_err(|source| ImageIoError::Io {
+        std::fs::rename(&tmp, path).map_err(|err| ImageIoError::Io {
             path: path.display().to_string(),
-            source,
+            err,
         })
     }
 
@@ -109,9 +106,9 @@ impl Image {
                 im.data[pos.y() * w + pos.x()] = Rgb::new(r, g, b);
             },
         )
-        .map_err(|source| ImageIoError::Exr {
+        .map_err(|err| ImageIoError::Exr {
             path: path.display().to_string(),
-            source,
+            err,
         })?;
         Ok(img.layer_data.channel_data.pixels)
     }

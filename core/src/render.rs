@@ -107,8 +107,8 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                 };
                 let l = path::li(scene, ray, &mut s, &mut st);
                 st.samples += 1;
-                if !l.is_finite() {
-                    st.nonfinite += 1;
+                if !crate::film::is_valid_sample(l) {
+                    st.dropped += 1;
                     continue;
                 }
                 acc.count_sample(x, y, l);

@@ -38,6 +38,14 @@ impl Bsdf {
         }
     }
 
+    /// Whether the BSDF reflects nothing at all (paths end there).
+    pub fn is_black(&self) -> bool {
+        match self {
+            Bsdf::Diffuse { reflectance } => reflectance.is_black(),
+            Bsdf::TwoSided { front, back } => front.is_black() && back.is_black(),
+        }
+    }
+
     /// Every texture the BSDF reads.
     pub fn textures(&self) -> Vec<&Texture> {
         match self {

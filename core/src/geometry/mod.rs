@@ -120,7 +120,7 @@ impl RayPre {
 /// Watertight ray-triangle intersection. Returns `(t, b0, b1, b2)` with barycentric weights of
 /// `p0`, `p1`, `p2`. Edges shared by two triangles are never both missed, and the hit distance is
 /// accepted only beyond its own rounding error bound (pbrt 3rd ed., section 3.9.6).
-#[inline]
+#[inline(always)]
 pub fn intersect_triangle(
     ray: &Ray,
     pre: &RayPre,

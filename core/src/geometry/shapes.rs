@@ -15,6 +15,19 @@ pub struct Sphere {
     pub rot: Mat3,
 }
 
+impl Sphere {
+    /// Mitsuba's sphere uv of the point with outward world normal `n`.
+    #[inline]
+    pub fn uv(&self, n: Vec3) -> Vec2 {
+        let l = self.rot * n;
+        let mut phi = l.y.atan2(l.x);
+        if phi < 0.0 {
+            phi += 2.0 * PI;
+        }
+        Vec2::new(phi / (2.0 * PI), safe_acos(l.z) / PI)
+    }
+}
+
 /// The unit disk in the object xy-plane, facing +z, placed by an affine `to_world`.
 #[derive(Clone, Debug)]
 pub struct Disk {
@@ -39,6 +52,16 @@ impl Disk {
             normal,
             area: PI * ex.cross(ey).length(),
         }
+    }
+
+    /// Mitsuba's disk uv: (r, phi / 2 pi) of object-space point `q`.
+    #[inline]
+    pub fn uv(q: Vec2) -> Vec2 {
+        let mut phi = q.y.atan2(q.x);
+        if phi < 0.0 {
+            phi += 2.0 * PI;
+        }
+        Vec2::new(q.length(), phi / (2.0 * PI))
     }
 
     /// World point of object-space `(x, y, 0)` and its rounding error bound.
@@ -79,6 +102,7 @@ pub struct SurfacePoint {
     pub p: Vec3,
     pub p_err: Vec3,
     pub n: Vec3,
+    pub uv: Vec2,
 }
 
 impl Shape {
@@ -161,11 +185,7 @@ impl Shape {
                 let p = s.center + n * s.radius;
                 let p_err = (s.center.abs() + (n * s.radius).abs()) * gamma(6);
                 let l = s.rot * n;
-                let mut phi = l.y.atan2(l.x);
-                if phi < 0.0 {
-                    phi += 2.0 * PI;
-                }
-                let uv = Vec2::new(phi / (2.0 * PI), safe_acos(l.z) / PI);
+                let uv = s.uv(n);
                 let dpdu = s.rot.transpose() * Vec3::new(-l.y, l.x, 0.0) * (2.0 * PI * s.radius);
                 (p, p_err, n, n, uv, dpdu)
             }
@@ -218,28 +238,34 @@ impl Shape {
 
     /// A uniformly distributed point on primitive `prim` with its (flipped) normal.
     pub fn sample_prim(&self, prim: usize, u: Vec2) -> SurfacePoint {
-        let (p, p_err, n) = match &self.geometry {
+        let (p, p_err, n, uv) = match &self.geometry {
             Geometry::Mesh(m) => {
                 let b = crate::math::square_to_uniform_triangle(u);
                 // Emission and its cosine follow the shading normal, as for hits.
-                let (p, p_err, _ng, ns, _, _) = m.surface(prim, b.x, b.y);
-                (p, p_err, ns)
+                let (p, p_err, _ng, ns, uv, _) = m.surface(prim, b.x, b.y);
+                (p, p_err, ns, uv)
             }
             Geometry::Sphere(s) => {
                 let n = crate::math::square_to_uniform_sphere(u);
                 let p = s.center + n * s.radius;
-                (p, (s.center.abs() + (n * s.radius).abs()) * gamma(6), n)
+                (
+                    p,
+                    (s.center.abs() + (n * s.radius).abs()) * gamma(6),
+                    n,
+                    s.uv(n),
+                )
             }
             Geometry::Disk(d) => {
                 let q = crate::math::square_to_uniform_disk_concentric(u);
                 let (p, p_err) = d.point(q.x, q.y);
-                (p, p_err, d.normal)
+                (p, p_err, d.normal, Disk::uv(q))
             }
         };
         SurfacePoint {
             p,
             p_err,
             n: if self.flip_normals { -n } else { n },
+            uv,
         }
     }
 }

@@ -22,8 +22,9 @@ pub struct Stats {
     pub bsdf_samples: u64,
     /// Escaped rays that looked up lights at infinity.
     pub escaped_lookups: u64,
-    /// Samples whose radiance was NaN or infinite: dropped, never splatted.
-    pub nonfinite: u64,
+    /// Samples whose radiance was NaN, infinite or above [`crate::film::MAX_RADIANCE`]:
+    /// dropped, never splatted.
+    pub dropped: u64,
 }
 
 impl Stats {
@@ -37,7 +38,7 @@ impl Stats {
         }
         self.bsdf_samples += o.bsdf_samples;
         self.escaped_lookups += o.escaped_lookups;
-        self.nonfinite += o.nonfinite;
+        self.dropped += o.dropped;
     }
 
     pub fn light_samples_of(&self, kind: LightKind) -> u64 {

@@ -76,6 +76,9 @@ pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> 
         }
 
         let bsdf = &scene.bsdfs[shape.bsdf as usize];
+        if bsdf.is_black() {
+            break;
+        }
         let wo = it.frame.to_local(wo_world);
         let [lu, lv, bu, bv] = s.next_4d();
         let [lsel, bsel, rr, _] = s.next_4d();

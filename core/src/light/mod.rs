@@ -132,7 +132,7 @@ impl Light {
                     return None; // the sampled point faces away: emits nothing towards `it`
                 }
                 let pdf = dist2 / (cos_l * *area as f32);
-                let li = radiance.eval(uv_of(sh, prim, sp.p));
+                let li = radiance.eval(sp.uv);
                 Some(LightSample {
                     wi,
                     li,
@@ -227,37 +227,6 @@ fn pick(cdf: &[f64], u: f32) -> usize {
         .min(n - 1)
 }
 
-/// uv of a sampled point (needed only by textured emitters).
-fn uv_of(shape: &Shape, prim: usize, p: Vec3) -> Vec2 {
-    match &shape.geometry {
-        Geometry::Mesh(m) => {
-            if m.uvs.is_empty() {
-                // uv = barycentrics (b1, b2), as for hits; recompute them from the point.
-                let [a, b, c] = m.tri(prim);
-                let (b1, b2) = barycentrics(a, b, c, p);
-                Vec2::new(b1, b2)
-            } else {
-                let [a, b, c] = m.tri(prim);
-                let (b1, b2) = barycentrics(a, b, c, p);
-                let [ia, ib, ic] = m.tris[prim].map(|k| k as usize);
-                m.uvs[ia] * (1.0 - b1 - b2) + m.uvs[ib] * b1 + m.uvs[ic] * b2
-            }
-        }
-        _ => Vec2::ZERO,
-    }
-}
-
-fn barycentrics(a: Vec3, b: Vec3, c: Vec3, p: Vec3) -> (f32, f32) {
-    let (e1, e2, ep) = (b - a, c - a, p - a);
-    let (d11, d12, d22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
-    let (dp1, dp2) = (ep.dot(e1), ep.dot(e2));
-    let det = d11 * d22 - d12 * d12;
-    if det == 0.0 {
-        return (0.0, 0.0);
-    }
-    ((d22 * dp1 - d12 * dp2) / det, (d11 * dp2 - d12 * dp1) / det)
-}
-
 /// 1 - cos(theta_max) of the cone a sphere subtends from `p`, or `None` when `p` is inside it.
 /// Computed as sin^2 / (1 + cos) to stay accurate for tiny, distant spheres.
 fn cone_extent(center: Vec3, radius: f32, p: Vec3) -> Option<f32> {
@@ -296,19 +265,11 @@ fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Optio
     let p_err = (center.abs() + (n * radius).abs()) * crate::math::gamma(6);
     Some(LightSample {
         wi,
-        li: radiance.eval(sphere_uv(s.rot * n)),
+        li: radiance.eval(s.uv(n)),
         pdf: 1.0 / (2.0 * PI * one_minus_cos_max),
         delta: false,
         target: Some(crate::math::offset_ray_origin(p_on, p_err, n, -wi)),
     })
-}
-
-fn sphere_uv(n: Vec3) -> Vec2 {
-    let mut phi = n.y.atan2(n.x);
-    if phi < 0.0 {
-        phi += 2.0 * PI;
-    }
-    Vec2::new(phi / (2.0 * PI), crate::math::safe_acos(n.z) / PI)
 }
 
 #[cfg(test)]

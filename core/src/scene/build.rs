@@ -50,6 +50,19 @@ pub fn build(doc: &Doc) -> R<Scene> {
             ));
         }
     }
+    // Top-level BSDF and texture definitions are built even if unused, so errors surface.
+    for (_, i, _) in doc.children(root, "bsdf") {
+        b.bsdf(i)?;
+    }
+    for (_, i, _) in doc.children(root, "texture") {
+        b.texture(i)?;
+    }
+    for (_, i, _) in doc.children(root, "shape") {
+        b.shape(i)?;
+    }
+    for (_, i, pos) in doc.children(root, "emitter") {
+        b.emitter(i, pos)?;
+    }
     let sensors = doc.children(root, "sensor");
     let (sensor, film, spp, seed, sampler_type) = match sensors.as_slice() {
         [] => return Err(doc.err(doc.obj(root).pos, "the scene has no <sensor>")),
@@ -70,19 +83,6 @@ pub fn build(doc: &Doc) -> R<Scene> {
         [(_, i, _)] => b.integrator(*i)?,
         [_, (_, _, pos), ..] => return Err(doc.err(*pos, "more than one <integrator>")),
     };
-    // Top-level BSDF and texture definitions are built even if unused, so errors surface.
-    for (_, i, _) in doc.children(root, "bsdf") {
-        b.bsdf(i)?;
-    }
-    for (_, i, _) in doc.children(root, "texture") {
-        b.texture(i)?;
-    }
-    for (_, i, _) in doc.children(root, "shape") {
-        b.shape(i)?;
-    }
-    for (_, i, pos) in doc.children(root, "emitter") {
-        b.emitter(i, pos)?;
-    }
     doc.check_all_used(root)?;
 
     let infinite_lights = (0..b.lights.len() as u32)
@@ -577,12 +577,14 @@ impl Builder<'_> {
                     .unsupported_plugin(i, &["obj", "ply", "rectangle", "cube", "sphere", "disk"]))
             }
         };
+        let emitters = doc.children(i, "emitter");
         let bsdf = match doc.children(i, "bsdf").as_slice() {
             [] => {
-                // Mitsuba's default material: diffuse, reflectance 0.5.
+                // Mitsuba's default material: diffuse 0.5, or black on an emitter.
+                let r = if emitters.is_empty() { 0.5 } else { 0.0 };
                 let id = self.bsdfs.len() as u32;
                 self.bsdfs.push(Bsdf::Diffuse {
-                    reflectance: Texture::Const(Rgb::splat(0.5)),
+                    reflectance: Texture::Const(Rgb::splat(r)),
                 });
                 id
             }
@@ -597,7 +599,7 @@ impl Builder<'_> {
             flip_normals,
             name: o.id.clone().unwrap_or_else(|| o.plugin.clone()),
         };
-        match doc.children(i, "emitter").as_slice() {
+        match emitters.as_slice() {
             [] => {}
             [(_, e, _)] => {
                 if doc.obj(*e).plugin != "area" {

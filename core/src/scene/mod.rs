@@ -118,3 +118,15 @@ impl Scene {
         self.accel.occluded(&self.shapes, ray)
     }
 }
+
+impl std::fmt::Debug for Scene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Scene")
+            .field("file", &self.file)
+            .field("film", &self.film)
+            .field("shapes", &self.shapes.len())
+            .field("lights", &self.lights.len())
+            .field("plan", &self.plan)
+            .finish_non_exhaustive()
+    }
+}
