@@ -122,6 +122,19 @@ impl Mesh {
         Ok(self)
     }
 
+    /// Mitsuba's `rectangle` and `cube` are flat-shaded, so they carry no vertex normals: the
+    /// face normal follows the winding. A mirroring `to_world` (negative determinant) would turn
+    /// it inside out, so the winding is reversed then, keeping normals where Mitsuba has them
+    /// (the inverse-transpose image of the object normal).
+    pub fn transform_flat(&mut self, m: &Mat4) {
+        self.transform(m);
+        if m.determinant() < 0.0 {
+            for t in &mut self.tris {
+                t.swap(1, 2);
+            }
+        }
+    }
+
     /// Mitsuba's `rectangle`: [-1, 1]^2 in the xy-plane, normal +z, uv = ((x + 1) / 2, (y + 1) / 2).
     pub fn rectangle() -> Mesh {
         Mesh {
@@ -131,7 +144,7 @@ impl Mesh {
                 Vec3::new(1.0, 1.0, 0.0),
                 Vec3::new(-1.0, 1.0, 0.0),
             ],
-            normals: vec![Vec3::Z; 4],
+            normals: Vec::new(),
             uvs: vec![
                 Vec2::new(0.0, 0.0),
                 Vec2::new(1.0, 0.0),
@@ -158,7 +171,6 @@ impl Mesh {
             let base = m.positions.len() as u32;
             for (su, sv) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
                 m.positions.push(n + u * su + v * sv);
-                m.normals.push(n);
                 m.uvs.push(Vec2::new((su + 1.0) * 0.5, (sv + 1.0) * 0.5));
             }
             m.tris.push([base, base + 1, base + 2]);
@@ -281,6 +293,12 @@ mod tests {
         for i in 0..m.tris.len() {
             let (p, _, ng, ns, _, _) = m.surface(i, 1.0 / 3.0, 1.0 / 3.0);
             assert!(ng.dot(p) > 0.0 && (ng - ns).length() < 1e-6, "face {i}");
+        }
+        let mut mirrored = Mesh::cube();
+        mirrored.transform_flat(&Mat4::from_scale(Vec3::new(-1.0, 2.0, 1.0)));
+        for i in 0..mirrored.tris.len() {
+            let (p, _, ng, _, _, _) = mirrored.surface(i, 1.0 / 3.0, 1.0 / 3.0);
+            assert!(ng.dot(p) > 0.0, "mirrored face {i} points inward");
         }
     }
 

@@ -515,8 +515,15 @@ impl Builder<'_> {
             Geometry::Mesh(m)
         };
         let geometry = match o.plugin.as_str() {
-            "rectangle" => mesh(Mesh::rectangle()),
-            "cube" => mesh(Mesh::cube()),
+            "rectangle" | "cube" => {
+                let mut m = if o.plugin == "cube" {
+                    Mesh::cube()
+                } else {
+                    Mesh::rectangle()
+                };
+                m.transform_flat(&to_world);
+                Geometry::Mesh(m)
+            }
             "obj" | "ply" => {
                 let rel = doc
                     .string(i, "filename")?
