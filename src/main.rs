@@ -8,11 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use furnace_core::{render_image, Image, Scene};
 
 #[derive(Parser)]
-#[command(
-    name = "furnace",
-    version,
-    about = "Furnace: a physically based renderer and its render farm"
-)]
+#[command(name = "furnace", version, about = "Furnace: a physically based renderer and its render farm")]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -78,10 +74,7 @@ fn run(cli: Cli) -> Result<()> {
             let a = Image::read_exr(&image)?;
             let b = Image::read_exr(&reference)?;
             let c = a.compare(&b).with_context(|| {
-                format!(
-                    "sizes differ: {}x{} vs {}x{}",
-                    a.width, a.height, b.width, b.height
-                )
+                format!("sizes differ: {}x{} vs {}x{}", a.width, a.height, b.width, b.height)
             })?;
             println!("RMSE          {:.6}", c.rmse);
             println!("relMSE        {:.6}", c.rel_mse);
@@ -143,11 +136,8 @@ fn render(a: RenderArgs) -> Result<()> {
         .expect("static progress template"),
     );
     let t1 = Instant::now();
-    let (acc, stats) = pool.install(|| {
-        render_image(&scene, spp, seed, a.tile, 64, &|done| {
-            bar.set_position(done)
-        })
-    });
+    let (acc, stats) =
+        pool.install(|| render_image(&scene, spp, seed, a.tile, 64, &|done| bar.set_position(done)));
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
     let image = acc.develop();
@@ -166,19 +156,13 @@ fn render(a: RenderArgs) -> Result<()> {
         stats.bsdf_samples as f64 / stats.samples as f64
     );
     if stats.dropped > 0 {
-        tracing::warn!(
-            "{} samples were NaN, infinite or above 2^40 and were dropped",
-            stats.dropped
-        );
+        tracing::warn!("{} samples were NaN, infinite or above 2^40 and were dropped", stats.dropped);
     }
     println!("wrote {} and {}", out.display(), png.display());
     Ok(())
 }
 
 fn default_output(scene: &Path) -> PathBuf {
-    let stem = scene
-        .file_stem()
-        .map(|s| s.to_os_string())
-        .unwrap_or_else(|| "render".into());
+    let stem = scene.file_stem().map(|s| s.to_os_string()).unwrap_or_else(|| "render".into());
     PathBuf::from(stem).with_extension("exr")
 }

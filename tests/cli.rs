@@ -16,26 +16,14 @@ fn render_writes_exr_and_png() {
     let dir = scratch("cli-render");
     let out = dir.join("small.exr");
     let o = furnace()
-        .args([
-            "render",
-            "--spp",
-            "4",
-            "--threads",
-            "2",
-            "-D",
-            "width=24",
-            "-o",
-        ])
+        .args(["render", "--spp", "4", "--threads", "2", "-D", "width=24", "-o"])
         .arg(&out)
         .arg(scenes().join("small.xml"))
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    assert!(
-        stderr.contains("thin lens") && stderr.contains("Msamples/s"),
-        "{stderr}"
-    );
+    assert!(stderr.contains("thin lens") && stderr.contains("Msamples/s"), "{stderr}");
     let img = Image::read_exr(&out).unwrap();
     assert_eq!((img.width, img.height), (24, 40));
     assert!(img.mean_luminance() > 0.05);
@@ -46,40 +34,22 @@ fn render_writes_exr_and_png() {
 
 #[test]
 fn plan_is_printed() {
-    let o = furnace()
-        .args(["render", "--plan"])
-        .arg(scenes().join("cbox.xml"))
-        .output()
-        .unwrap();
+    let o = furnace().args(["render", "--plan"]).arg(scenes().join("cbox.xml")).output().unwrap();
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success());
-    assert!(
-        out.contains("pinhole") && out.contains("area x1") && out.contains("MIS"),
-        "{out}"
-    );
+    assert!(out.contains("pinhole") && out.contains("area x1") && out.contains("MIS"), "{out}");
 }
 
 #[test]
 fn bad_scene_fails_with_file_line_and_reason() {
     let dir = scratch("cli-bad");
     let bad = dir.join("bad.xml");
-    std::fs::write(
-        &bad,
-        "<scene version=\"3.0.0\">\n  <shape type=\"teapot\"/>\n</scene>\n",
-    )
-    .unwrap();
+    std::fs::write(&bad, "<scene version=\"3.0.0\">\n  <shape type=\"teapot\"/>\n</scene>\n").unwrap();
     let o = furnace().arg("render").arg(&bad).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1));
-    assert!(
-        err.contains("bad.xml:2:3") && err.contains("unsupported shape plugin 'teapot'"),
-        "{err}"
-    );
-    let o = furnace()
-        .args(["render", "-D", "novalue"])
-        .arg(&bad)
-        .output()
-        .unwrap();
+    assert!(err.contains("bad.xml:2:3") && err.contains("unsupported shape plugin 'teapot'"), "{err}");
+    let o = furnace().args(["render", "-D", "novalue"]).arg(&bad).output().unwrap();
     assert!(String::from_utf8_lossy(&o.stderr).contains("NAME=VALUE"));
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -21,10 +21,7 @@ fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
         priority: 0,
     };
     let plan = chunk_plan(&settings);
-    let partials: Vec<_> = plan
-        .iter()
-        .map(|c| render_chunk(&scene, c, settings.seed).0)
-        .collect();
+    let partials: Vec<_> = plan.iter().map(|c| render_chunk(&scene, c, settings.seed).0).collect();
     let mut job = JobAccum::new(settings.width, settings.height);
     // Reverse order, every third chunk delivered twice.
     for (k, (c, p)) in plan.iter().zip(&partials).enumerate().rev() {
@@ -35,8 +32,5 @@ fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
     }
     assert_eq!(job.chunks_merged(), plan.len());
     let local = render(&scene, settings.spp, settings.seed).0;
-    assert!(
-        job.accum == local,
-        "farm merge differs from the local render"
-    );
+    assert!(job.accum == local, "farm merge differs from the local render");
 }

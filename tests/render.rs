@@ -15,20 +15,18 @@ fn check_reference(scene: &str, reference: &str, mitsuba_rel_mse_64: f64) {
     let (acc, st) = render(&s, 64, 0);
     assert_eq!(st.dropped, 0);
     let img = acc.develop();
-    let c = img
-        .compare(&common::reference(reference))
-        .expect("same size");
+    let c = img.compare(&common::reference(reference)).expect("same size");
     let ratio = c.mean_lum / c.ref_mean_lum;
-    eprintln!("{scene}: relMSE {:.5} (Mitsuba 64 spp: {mitsuba_rel_mse_64}), mean luminance ratio {ratio:.5}", c.rel_mse);
+    eprintln!(
+        "{scene}: relMSE {:.5} (Mitsuba 64 spp: {mitsuba_rel_mse_64}), mean luminance ratio {ratio:.5}",
+        c.rel_mse
+    );
     assert!(
         c.rel_mse <= 1.5 * mitsuba_rel_mse_64,
         "{scene}: relMSE {} > 1.5 x {mitsuba_rel_mse_64}",
         c.rel_mse
     );
-    assert!(
-        (ratio - 1.0).abs() < 0.01,
-        "{scene}: mean luminance ratio {ratio}"
-    );
+    assert!((ratio - 1.0).abs() < 0.01, "{scene}: mean luminance ratio {ratio}");
 }
 
 #[test]
@@ -90,15 +88,9 @@ fn white_furnace_closed_emitters_return_one_over_one_minus_albedo() {
         for c in 0..3 {
             let mean = img.data.iter().map(|p| p[c] as f64).sum::<f64>() / img.data.len() as f64;
             let err = (mean / expected - 1.0).abs();
-            assert!(
-                err < 0.01,
-                "{shape} a={a}: channel {c} mean {mean}, expected {expected}"
-            );
+            assert!(err < 0.01, "{shape} a={a}: channel {c} mean {mean}, expected {expected}");
         }
-        assert!(img
-            .data
-            .iter()
-            .all(|p| p.is_finite() && p.min_element() > 0.0));
+        assert!(img.data.iter().all(|p| p.is_finite() && p.min_element() > 0.0));
     }
 }
 
@@ -106,60 +98,22 @@ fn white_furnace_closed_emitters_return_one_over_one_minus_albedo() {
 fn sample_ranges_tiles_and_threads_merge_to_identical_bits() {
     let s = load("small.xml", &[]);
     let (w, h) = (s.film.crop_width, s.film.crop_height);
-    let whole = render_region(
-        &s,
-        &Region {
-            x0: 0,
-            y0: 0,
-            x1: w,
-            y1: h,
-            s0: 0,
-            s1: 32,
-        },
-        9,
-    )
-    .0;
+    let full = |s0, s1| Region { x0: 0, y0: 0, x1: w, y1: h, s0, s1 };
+    let whole = render_region(&s, &full(0, 32), 9).0;
 
     // [0, 16) + [16, 32), merged in reverse order.
     let mut halves = Accum::new(0, 0, w, h);
     for (s0, s1) in [(16, 32), (0, 16)] {
-        halves.merge(
-            &render_region(
-                &s,
-                &Region {
-                    x0: 0,
-                    y0: 0,
-                    x1: w,
-                    y1: h,
-                    s0,
-                    s1,
-                },
-                9,
-            )
-            .0,
-        );
+        halves.merge(&render_region(&s, &full(s0, s1), 9).0);
     }
     assert!(whole == halves, "sample-range split changed the bits");
 
     // Odd tiles (7 px) and sample chunks (5 spp), on one thread and on four.
-    let one = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap();
-    let four = rayon::ThreadPoolBuilder::new()
-        .num_threads(4)
-        .build()
-        .unwrap();
-    let a = one
-        .install(|| furnace_core::render_image(&s, 32, 9, 7, 5, &|_| {}))
-        .0;
-    let b = four
-        .install(|| furnace_core::render_image(&s, 32, 9, 64, 32, &|_| {}))
-        .0;
-    assert!(
-        a == whole && b == whole,
-        "tile / thread split changed the bits"
-    );
+    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let four = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
+    let a = one.install(|| furnace_core::render_image(&s, 32, 9, 7, 5, &|_| {})).0;
+    let b = four.install(|| furnace_core::render_image(&s, 32, 9, 64, 32, &|_| {})).0;
+    assert!(a == whole && b == whole, "tile / thread split changed the bits");
     assert_eq!(whole.develop(), halves.develop());
     assert_eq!(whole.sample_count(), (w * h) as u64 * 32);
 }
@@ -167,14 +121,7 @@ fn sample_ranges_tiles_and_threads_merge_to_identical_bits() {
 #[test]
 fn different_seeds_give_different_noise() {
     let s = load("small.xml", &[]);
-    let r = Region {
-        x0: 0,
-        y0: 0,
-        x1: 8,
-        y1: 8,
-        s0: 0,
-        s1: 4,
-    };
+    let r = Region { x0: 0, y0: 0, x1: 8, y1: 8, s0: 0, s1: 4 };
     assert!(render_region(&s, &r, 1).0 != render_region(&s, &r, 2).0);
 }
 
@@ -185,8 +132,7 @@ fn thin_lens_with_zero_aperture_renders_the_pinhole_bits() {
         .replace("type=\"thinlens\"", "type=\"perspective\"")
         .replace("<float name=\"aperture_radius\" value=\"$aperture\"/>", "")
         .replace("<float name=\"focus_distance\" value=\"4\"/>", "");
-    let pinhole =
-        furnace_core::Scene::load_str(&pinhole_xml, &scenes().join("small.xml"), &[]).unwrap();
+    let pinhole = furnace_core::Scene::load_str(&pinhole_xml, &scenes().join("small.xml"), &[]).unwrap();
     let zero = load("small.xml", &[("aperture", "0")]);
     assert_eq!(zero.plan.camera, CameraModel::Pinhole);
     let (a, sa) = render(&pinhole, 8, 3);
@@ -213,19 +159,13 @@ fn stages_absent_from_the_plan_never_run() {
     assert_eq!(st.escaped_lookups, 0);
     assert!(st.light_samples_of(LightKind::Area) > 0);
     let text = cbox.plan.to_string();
-    assert!(
-        text.contains("pinhole") && !text.contains("point") && !text.contains("infinite"),
-        "{text}"
-    );
+    assert!(text.contains("pinhole") && !text.contains("point") && !text.contains("infinite"), "{text}");
 
     // small: every one of those stages is planned and runs.
     let small = load("small.xml", &[]);
     let (_, st) = render(&small, 2, 0);
     for k in LightKind::ALL {
-        assert!(
-            small.plan.has_light(k) && st.light_samples_of(k) > 0,
-            "{k:?}"
-        );
+        assert!(small.plan.has_light(k) && st.light_samples_of(k) > 0, "{k:?}");
     }
     assert!(st.escaped_lookups > 0 && st.lens_samples > 0);
 }
@@ -254,4 +194,65 @@ fn nonfinite_and_overflowing_samples_are_dropped_counted_and_never_reach_the_fil
     assert!(st.dropped > 0, "expected overflowing samples");
     assert_eq!(acc.sample_count() + st.dropped, st.samples);
     assert!(acc.develop().data.iter().all(|p| p.is_finite()));
+}
+
+/// Direct light from a point light at grazing incidence on a plane and on a large sphere:
+/// every pixel that sees the surface matches the analytic (rho / pi) I cos / d^2 at its
+/// centre within the variation across its footprint. Self-shadowing ("acne") would show up as
+/// dark pixels.
+#[test]
+fn no_self_shadowing_at_grazing_light() {
+    use furnace_core::math::{Vec2, Vec3};
+    for shape in [
+        r#"<shape type="rectangle"><transform name="to_world"><scale value="50"/><rotate x="1" angle="-90"/></transform>"#,
+        r#"<shape type="sphere"><point name="center" x="0" y="-1000" z="0"/><float name="radius" value="1000"/>"#,
+    ] {
+        let xml = format!(
+            r#"<scene version="3.0.0">
+            <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+            <sensor type="perspective">
+                <float name="fov" value="50"/>
+                <transform name="to_world"><lookat origin="0, 2, 6" target="0, 0, 0"/></transform>
+                <film type="hdrfilm"><integer name="width" value="64"/><integer name="height" value="48"/>
+                    <rfilter type="box"/></film>
+            </sensor>
+            <emitter type="point"><point name="position" x="-30" y="0.4" z="0"/><rgb name="intensity" value="1000"/></emitter>
+            {shape}<bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+        </scene>"#
+        );
+        let s = load_str(&xml).unwrap();
+        let img = render(&s, 16, 0).0.develop();
+        let light = Vec3::new(-30.0, 0.4, 0.0);
+        let mut checked = 0;
+        for y in 0..img.height {
+            for x in 0..img.width {
+                let ray = s.camera.ray_pinhole(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+                let Some(it) = s.intersect(&ray) else { continue };
+                if it.t > 12.0 {
+                    continue; // far pixels: footprints too large for a centre estimate
+                }
+                let to_l = light - it.p;
+                let cos = it.frame.n.dot(to_l.normalize()).max(0.0);
+                let expected = 0.5 / std::f32::consts::PI * 1000.0 * cos / to_l.length_squared();
+                let got = img.get(x, y).x;
+                assert!(
+                    (got / expected - 1.0).abs() < 0.1,
+                    "{shape}: pixel ({x}, {y}) = {got}, analytic {expected}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 1000, "only {checked} pixels checked");
+    }
+}
+
+#[test]
+fn max_depth_zero_renders_black_and_one_shows_only_emitters() {
+    let s = load("cbox.xml", &[("max_depth", "0")]);
+    let (acc, _) = render(&s, 1, 0);
+    assert!(acc.develop().data.iter().all(|p| *p == furnace_core::math::Rgb::ZERO));
+    let s = load("cbox.xml", &[("max_depth", "1")]);
+    let (acc, st) = render(&s, 1, 0);
+    assert_eq!(st.shadow_rays + st.bsdf_samples, 0);
+    assert!(acc.develop().data.iter().any(|p| p.x > 1.0));
 }

@@ -27,10 +27,7 @@ fn error_of(body: &str) -> SceneError {
         Err(e) => e,
     };
     let text = e.to_string();
-    assert!(
-        text.starts_with(&scenes().join("inline.xml").display().to_string()),
-        "{text}"
-    );
+    assert!(text.starts_with(&scenes().join("inline.xml").display().to_string()), "{text}");
     assert!(e.line > 0 && e.col > 0, "no position in: {text}");
     e
 }
@@ -39,15 +36,9 @@ fn error_of(body: &str) -> SceneError {
 fn unknown_plugin_is_named_with_its_position() {
     let e = error_of(r#"    <shape type="rectangle"><bsdf type="velvet"/></shape>"#);
     assert_eq!(e.line, 6);
-    assert!(
-        e.message.contains("unsupported bsdf plugin 'velvet'"),
-        "{e}"
-    );
+    assert!(e.message.contains("unsupported bsdf plugin 'velvet'"), "{e}");
     let e = error_of(r#"    <emitter type="sunsky"/>"#);
-    assert!(
-        e.message.contains("unsupported emitter plugin 'sunsky'"),
-        "{e}"
-    );
+    assert!(e.message.contains("unsupported emitter plugin 'sunsky'"), "{e}");
 }
 
 #[test]
@@ -58,23 +49,15 @@ fn unsupported_parameter_is_never_ignored() {
     </shape>"#,
     );
     assert_eq!((e.line, e.col), (7, 30));
-    assert!(
-        e.message.contains("unsupported parameter 'roughness'") && e.message.contains("diffuse"),
-        "{e}"
-    );
+    assert!(e.message.contains("unsupported parameter 'roughness'") && e.message.contains("diffuse"), "{e}");
     let e = error_of(r#"    <medium type="homogeneous"/>"#);
     assert!(e.message.contains("unsupported element <medium>"), "{e}");
 }
 
 #[test]
 fn missing_file_is_reported() {
-    let e = error_of(
-        r#"    <shape type="obj"><string name="filename" value="assets/nope.obj"/></shape>"#,
-    );
-    assert!(
-        e.message.contains("cannot open file") && e.message.contains("nope.obj"),
-        "{e}"
-    );
+    let e = error_of(r#"    <shape type="obj"><string name="filename" value="assets/nope.obj"/></shape>"#);
+    assert!(e.message.contains("cannot open file") && e.message.contains("nope.obj"), "{e}");
     let e = error_of(
         r#"    <shape type="sphere"><bsdf type="diffuse">
         <texture type="bitmap" name="reflectance"><string name="filename" value="assets/missing.png"/></texture>
@@ -86,9 +69,11 @@ fn missing_file_is_reported() {
 #[test]
 fn paths_leaving_the_scene_folder_are_refused() {
     // tests/scenes/../scenes/... resolves inside the folder: allowed.
-    load_str(&scene_with(r#"    <shape type="obj"><string name="filename" value="../scenes/assets/quad.obj"/></shape>"#)).unwrap();
-    let e =
-        error_of(r#"    <shape type="obj"><string name="filename" value="../render.rs"/></shape>"#);
+    load_str(&scene_with(
+        r#"    <shape type="obj"><string name="filename" value="../scenes/assets/quad.obj"/></shape>"#,
+    ))
+    .unwrap();
+    let e = error_of(r#"    <shape type="obj"><string name="filename" value="../render.rs"/></shape>"#);
     assert!(e.message.contains("outside the scene's folder"), "{e}");
 }
 
@@ -157,17 +142,10 @@ fn transforms_apply_in_document_order() {
         Geometry::Sphere(sp) => (sp.center, sp.radius),
         _ => unreachable!(),
     };
-    assert!(
-        (centre(0).0 - Vec3::new(2.0, 0.0, 0.0)).length() < 1e-5
-            && (centre(0).1 - 2.0).abs() < 1e-5
-    );
+    assert!((centre(0).0 - Vec3::new(2.0, 0.0, 0.0)).length() < 1e-5 && (centre(0).1 - 2.0).abs() < 1e-5);
     assert!((centre(1).0 - Vec3::new(5.0, 6.0, 7.0)).length() < 1e-5);
     // centre (0,0,1) rotated 90 degrees about y -> (1,0,0), then translated -> (4,0,0).
-    assert!(
-        (centre(2).0 - Vec3::new(4.0, 0.0, 0.0)).length() < 1e-5,
-        "{:?}",
-        centre(2)
-    );
+    assert!((centre(2).0 - Vec3::new(4.0, 0.0, 0.0)).length() < 1e-5, "{:?}", centre(2));
 }
 
 #[test]
@@ -182,10 +160,7 @@ fn meshes_load_from_obj_and_ply() {
         })
         .collect();
     // OBJ quad, PLY quad, cube.
-    assert_eq!(
-        meshes.iter().map(|m| m.tris.len()).collect::<Vec<_>>(),
-        vec![2, 2, 12]
-    );
+    assert_eq!(meshes.iter().map(|m| m.tris.len()).collect::<Vec<_>>(), vec![2, 2, 12]);
     // OBJ texture v is flipped (flip_tex_coords defaults to true): vt 0 0 -> uv (0, 1).
     assert_eq!(meshes[0].uvs[0], furnace_core::math::Vec2::new(0.0, 1.0));
     assert_eq!(s.assets.len(), 3, "{:?}", s.assets);

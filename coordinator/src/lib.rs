@@ -22,10 +22,7 @@ pub enum MergeOutcome {
 
 impl JobAccum {
     pub fn new(width: u32, height: u32) -> JobAccum {
-        JobAccum {
-            accum: Accum::new(0, 0, width, height),
-            merged: HashSet::new(),
-        }
+        JobAccum { accum: Accum::new(0, 0, width, height), merged: HashSet::new() }
     }
 
     /// Merges `partial`, the result of `chunk`, unless that chunk was merged already.

@@ -124,13 +124,7 @@ pub struct Accum {
 
 impl Accum {
     pub fn new(x0: u32, y0: u32, width: u32, height: u32) -> Accum {
-        Accum {
-            x0,
-            y0,
-            width,
-            height,
-            pixels: vec![PixelSum::default(); (width * height) as usize],
-        }
+        Accum { x0, y0, width, height, pixels: vec![PixelSum::default(); (width * height) as usize] }
     }
 
     #[inline]
@@ -161,9 +155,7 @@ impl Accum {
         if let Some(i) = self.index(x, y) {
             let lum = luminance(l) as f64;
             let p = &mut self.pixels[i];
-            p.lum2 = p
-                .lum2
-                .wrapping_add((lum * lum * (FIXED_BITS_LUM2 as f64).exp2()).round() as i128);
+            p.lum2 = p.lum2.wrapping_add((lum * lum * (FIXED_BITS_LUM2 as f64).exp2()).round() as i128);
             p.count += 1;
         }
     }
@@ -203,11 +195,7 @@ impl Accum {
                 )
             })
             .collect();
-        crate::image_io::Image {
-            width: self.width,
-            height: self.height,
-            data,
-        }
+        crate::image_io::Image { width: self.width, height: self.height, data }
     }
 }
 

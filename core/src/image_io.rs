@@ -8,15 +8,9 @@ use crate::math::{linear_to_srgb, luminance, Rgb};
 #[derive(Debug, thiserror::Error)]
 pub enum ImageIoError {
     #[error("{path}: {err}")]
-    Exr {
-        path: String,
-        err: exr::error::Error,
-    },
+    Exr { path: String, err: exr::error::Error },
     #[error("{path}: {err}")]
-    Png {
-        path: String,
-        err: image::ImageError,
-    },
+    Png { path: String, err: image::ImageError },
     #[error("{path}: {err}")]
     Io { path: String, err: std::io::Error },
 }
@@ -38,23 +32,17 @@ impl Image {
     /// Writes RGB f32 EXR, atomically (temporary file, then rename). Never spawns threads.
     pub fn write_exr(&self, path: &Path) -> Result<(), ImageIoError> {
         use exr::prelude::*;
-        let tmp = tmp_path(path);
         let w = self.width as usize;
         let channels = SpecificChannels::rgb(|pos: Vec2<usize>| {
             let c = self.data[pos.y() * w + pos.x()];
             (c.x, c.y, c.z)
         });
-        Image::from_channels((w, self.height as usize), channels)
-            .write()
-            .non_parallel()
-            .to_file(&tmp)
-            .map_err(|err| ImageIoError::Exr {
-                path: path.display().to_string(),
-                err,
-            })?;
-        std::fs::rename(&tmp, path).map_err(|err| ImageIoError::Io {
-            path: path.display().to_string(),
-            err,
+        write_atomically(path, |tmp| {
+            Image::from_channels((w, self.height as usize), channels)
+                .write()
+                .non_parallel()
+                .to_file(tmp)
+                .map_err(|err| ImageIoError::Exr { path: path.display().to_string(), err })
         })
     }
 
@@ -64,30 +52,20 @@ impl Image {
         let mut buf = Vec::with_capacity(self.data.len() * 3);
         for c in &self.data {
             for v in [c.x, c.y, c.z] {
-                let v = if v.is_finite() {
-                    (v * scale).clamp(0.0, 1.0)
-                } else {
-                    0.0
-                };
+                let v = if v.is_finite() { (v * scale).clamp(0.0, 1.0) } else { 0.0 };
                 buf.push((linear_to_srgb(v) * 255.0 + 0.5) as u8);
             }
         }
-        let tmp = tmp_path(path);
-        image::save_buffer_with_format(
-            &tmp,
-            &buf,
-            self.width,
-            self.height,
-            image::ExtendedColorType::Rgb8,
-            image::ImageFormat::Png,
-        )
-        .map_err(|err| ImageIoError::Png {
-            path: path.display().to_string(),
-            err,
-        })?;
-        std::fs::rename(&tmp, path).map_err(|err| ImageIoError::Io {
-            path: path.display().to_string(),
-            err,
+        write_atomically(path, |tmp| {
+            image::save_buffer_with_format(
+                tmp,
+                &buf,
+                self.width,
+                self.height,
+                image::ExtendedColorType::Rgb8,
+                image::ImageFormat::Png,
+            )
+            .map_err(|err| ImageIoError::Png { path: path.display().to_string(), err })
         })
     }
 
@@ -106,10 +84,7 @@ impl Image {
                 im.data[pos.y() * w + pos.x()] = Rgb::new(r, g, b);
             },
         )
-        .map_err(|err| ImageIoError::Exr {
-            path: path.display().to_string(),
-            err,
-        })?;
+        .map_err(|err| ImageIoError::Exr { path: path.display().to_string(), err })?;
         Ok(img.layer_data.channel_data.pixels)
     }
 
@@ -119,9 +94,7 @@ impl Image {
             .data
             .iter()
             .filter(|c| c.is_finite())
-            .fold((0.0f64, 0usize), |(s, n), c| {
-                (s + luminance(*c) as f64, n + 1)
-            });
+            .fold((0.0f64, 0usize), |(s, n), c| (s + luminance(*c) as f64, n + 1));
         s / n.max(1) as f64
     }
 
@@ -161,11 +134,18 @@ pub struct Comparison {
     pub ref_mean_lum: f64,
 }
 
-fn tmp_path(path: &Path) -> std::path::PathBuf {
-    let mut name = path
-        .file_name()
-        .map(|n| n.to_os_string())
-        .unwrap_or_default();
+/// Writes through `write` into a temporary file beside `path`, then renames it into place, so
+/// that a reader never sees a half-written image.
+fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), ImageIoError>,
+) -> Result<(), ImageIoError> {
+    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
     name.push(format!(".tmp{}", std::process::id()));
-    path.with_file_name(name)
+    let tmp = path.with_file_name(name);
+    if let Err(e) = write(&tmp) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    std::fs::rename(&tmp, path).map_err(|err| ImageIoError::Io { path: path.display().to_string(), err })
 }

@@ -117,11 +117,7 @@ impl Frame {
             return Frame::from_normal(n);
         }
         let s = s / len2.sqrt();
-        Frame {
-            s,
-            t: n.cross(s),
-            n,
-        }
+        Frame { s, t: n.cross(s), n }
     }
 
     #[inline]
@@ -143,11 +139,8 @@ pub fn square_to_uniform_disk_concentric(u: Vec2) -> Vec2 {
     if x == 0.0 && y == 0.0 {
         return Vec2::ZERO;
     }
-    let (r, phi) = if x.abs() > y.abs() {
-        (x, (PI / 4.0) * (y / x))
-    } else {
-        (y, (PI / 2.0) - (PI / 4.0) * (x / y))
-    };
+    let (r, phi) =
+        if x.abs() > y.abs() { (x, (PI / 4.0) * (y / x)) } else { (y, (PI / 2.0) - (PI / 4.0) * (x / y)) };
     let (s, c) = phi.sin_cos();
     Vec2::new(r * c, r * s)
 }
@@ -238,12 +231,7 @@ pub fn hash_u32(mut x: u32) -> u32 {
 pub fn hash_words(words: &[u32]) -> u32 {
     let mut h = 0x9e37_79b9u32;
     for &w in words {
-        h = hash_u32(
-            h ^ w
-                .wrapping_add(0x9e37_79b9)
-                .wrapping_add(h << 6)
-                .wrapping_add(h >> 2),
-        );
+        h = hash_u32(h ^ w.wrapping_add(0x9e37_79b9).wrapping_add(h << 6).wrapping_add(h >> 2));
     }
     h
 }

@@ -13,10 +13,7 @@ pub enum CameraModel {
     #[default]
     Pinhole,
     /// Thin lens with a non-zero aperture (an aperture of 0 is planned as a pinhole).
-    ThinLens {
-        aperture_radius: f32,
-        focus_distance: f32,
-    },
+    ThinLens { aperture_radius: f32, focus_distance: f32 },
 }
 
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -45,10 +42,9 @@ pub struct RenderPlan {
 impl RenderPlan {
     pub fn derive(scene: &Scene) -> RenderPlan {
         let camera = match scene.camera.lens {
-            Some(l) if l.aperture_radius > 0.0 => CameraModel::ThinLens {
-                aperture_radius: l.aperture_radius,
-                focus_distance: l.focus_distance,
-            },
+            Some(l) if l.aperture_radius > 0.0 => {
+                CameraModel::ThinLens { aperture_radius: l.aperture_radius, focus_distance: l.focus_distance }
+            }
             _ => CameraModel::Pinhole,
         };
         let mut lights: Vec<(LightKind, usize)> = LightKind::ALL
@@ -59,10 +55,7 @@ impl RenderPlan {
         let any_smooth = scene.bsdfs.iter().any(Bsdf::is_smooth);
         let light_sampling = !scene.lights.is_empty() && any_smooth;
         let mis = light_sampling
-            && scene
-                .lights
-                .iter()
-                .any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant));
+            && scene.lights.iter().any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant));
         let mut bsdfs: Vec<&'static str> = Vec::new();
         for b in &scene.bsdfs {
             collect_bsdf_names(b, &mut bsdfs);
@@ -75,10 +68,8 @@ impl RenderPlan {
                         FilterType::Nearest => "nearest",
                         FilterType::Bilinear => "bilinear",
                     };
-                    let line = format!(
-                        "bitmap {}x{} {f} lookup, no footprint",
-                        bt.bitmap.width, bt.bitmap.height
-                    );
+                    let line =
+                        format!("bitmap {}x{} {f} lookup, no footprint", bt.bitmap.width, bt.bitmap.height);
                     if !textures.contains(&line) {
                         textures.push(line);
                     }
@@ -97,10 +88,7 @@ impl RenderPlan {
             max_depth: scene.integrator.max_depth,
             rr_depth: scene.integrator.rr_depth,
             hide_emitters: scene.integrator.hide_emitters,
-            sampler: format!(
-                "owen-scrambled sobol (scene names '{}')",
-                scene.sampler_type
-            ),
+            sampler: format!("owen-scrambled sobol (scene names '{}')", scene.sampler_type),
         }
     }
 
@@ -132,39 +120,15 @@ impl fmt::Display for RenderPlan {
                 "camera      thin lens, aperture radius {aperture_radius}, focus distance {focus_distance}"
             )?,
         }
-        writeln!(
-            f,
-            "pixel       {} filter; sampler {}",
-            self.filter, self.sampler
-        )?;
-        let lights: Vec<String> = self
-            .lights
-            .iter()
-            .map(|(k, n)| format!("{} x{n}", k.name()))
-            .collect();
-        writeln!(
-            f,
-            "emitters    {}",
-            if lights.is_empty() {
-                "none".into()
-            } else {
-                lights.join(", ")
-            }
-        )?;
+        writeln!(f, "pixel       {} filter; sampler {}", self.filter, self.sampler)?;
+        let lights: Vec<String> = self.lights.iter().map(|(k, n)| format!("{} x{n}", k.name())).collect();
+        writeln!(f, "emitters    {}", if lights.is_empty() { "none".into() } else { lights.join(", ") })?;
         writeln!(
             f,
             "integrator  path, max_depth {}, rr_depth {}{}",
-            if self.max_depth == u32::MAX {
-                "unlimited".to_string()
-            } else {
-                self.max_depth.to_string()
-            },
+            if self.max_depth == u32::MAX { "unlimited".to_string() } else { self.max_depth.to_string() },
             self.rr_depth,
-            if self.hide_emitters {
-                ", emitters hidden"
-            } else {
-                ""
-            }
+            if self.hide_emitters { ", emitters hidden" } else { "" }
         )?;
         writeln!(f, "stages:")?;
         writeln!(
@@ -181,10 +145,7 @@ impl fmt::Display for RenderPlan {
             writeln!(f, "  - light sampling: {}", kinds.join(", "))?;
         }
         if self.mis {
-            writeln!(
-                f,
-                "  - MIS (power heuristic): BSDF sampling x light sampling"
-            )?;
+            writeln!(f, "  - MIS (power heuristic): BSDF sampling x light sampling")?;
         }
         writeln!(f, "  - BSDF sampling: {}", self.bsdfs.join(", "))?;
         for t in &self.textures {

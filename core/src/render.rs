@@ -31,13 +31,7 @@ impl Region {
 
 /// Every `tile` x `tile` tile crossed with every sample range of `spp_per_chunk` samples, pass
 /// by pass: all tiles of the first range before any tile of the second. A pure function.
-pub fn plan_regions(
-    width: u32,
-    height: u32,
-    spp: u64,
-    tile: u32,
-    spp_per_chunk: u64,
-) -> Vec<Region> {
+pub fn plan_regions(width: u32, height: u32, spp: u64, tile: u32, spp_per_chunk: u64) -> Vec<Region> {
     let tile = tile.max(1);
     let spp_per_chunk = spp_per_chunk.max(1);
     let mut out = Vec::new();
@@ -46,14 +40,7 @@ pub fn plan_regions(
         let s1 = (s0 + spp_per_chunk).min(spp);
         for y0 in (0..height).step_by(tile as usize) {
             for x0 in (0..width).step_by(tile as usize) {
-                out.push(Region {
-                    x0,
-                    y0,
-                    x1: (x0 + tile).min(width),
-                    y1: (y0 + tile).min(height),
-                    s0,
-                    s1,
-                });
+                out.push(Region { x0, y0, x1: (x0 + tile).min(width), y1: (y0 + tile).min(height), s0, s1 });
             }
         }
         s0 = s1;
@@ -93,15 +80,9 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                 let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
                 let ray = match scene.plan.camera {
                     CameraModel::Pinhole => cam.ray_pinhole(pos),
-                    CameraModel::ThinLens {
-                        aperture_radius,
-                        focus_distance,
-                    } => {
+                    CameraModel::ThinLens { aperture_radius, focus_distance } => {
                         st.lens_samples += 1;
-                        let lens = crate::camera::ThinLens {
-                            aperture_radius,
-                            focus_distance,
-                        };
+                        let lens = crate::camera::ThinLens { aperture_radius, focus_distance };
                         cam.ray_thin_lens(&lens, pos, Vec2::new(lx, ly))
                     }
                 };

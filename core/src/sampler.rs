@@ -31,11 +31,7 @@ impl SampleStream {
         // scrambled sequence.
         let block = (index / SEQUENCE_LEN as u64) as u32;
         let seed = hash_words(&[job_seed as u32, (job_seed >> 32) as u32, x, y, block]);
-        SampleStream {
-            index: (index % SEQUENCE_LEN as u64) as u32,
-            seed,
-            set: 0,
-        }
+        SampleStream { index: (index % SEQUENCE_LEN as u64) as u32, seed, set: 0 }
     }
 
     /// The next 4 dimensions, as one stratified 4-D point in [0, 1)^4.
@@ -47,8 +43,7 @@ impl SampleStream {
             return sobol_burley::sample_4d(self.index, 0, hash_words(&[self.seed, set]));
         }
         let h = hash_words(&[self.seed, set, self.index]);
-        let unit =
-            |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
+        let unit = |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
         [unit(1), unit(2), unit(3), unit(4)]
     }
 

@@ -50,14 +50,7 @@ pub struct ChunkSpec {
 
 impl ChunkSpec {
     pub fn region(&self) -> furnace_core::Region {
-        furnace_core::Region {
-            x0: self.x0,
-            y0: self.y0,
-            x1: self.x1,
-            y1: self.y1,
-            s0: self.s0,
-            s1: self.s1,
-        }
+        furnace_core::Region { x0: self.x0, y0: self.y0, x1: self.x1, y1: self.y1, s0: self.s0, s1: self.s1 }
     }
 }
 
@@ -108,10 +101,7 @@ mod tests {
         // 3 x 2 tiles, sample ranges [0,64) [64,128) [128,150), pass by pass.
         assert_eq!(plan.len(), 18);
         assert!(plan.windows(2).all(|w| w[0].s0 <= w[1].s0));
-        assert_eq!(
-            plan.iter().map(|c| c.id).collect::<Vec<_>>(),
-            (0..18).collect::<Vec<_>>()
-        );
+        assert_eq!(plan.iter().map(|c| c.id).collect::<Vec<_>>(), (0..18).collect::<Vec<_>>());
     }
 
     #[test]

@@ -10,10 +10,7 @@ pub fn scenes() -> PathBuf {
 }
 
 pub fn load(name: &str, defines: &[(&str, &str)]) -> Scene {
-    let defs: Vec<(String, String)> = defines
-        .iter()
-        .map(|(k, v)| (k.to_string(), v.to_string()))
-        .collect();
+    let defs: Vec<(String, String)> = defines.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
     Scene::load(&scenes().join(name), &defs).unwrap_or_else(|e| panic!("{e}"))
 }
 

@@ -33,11 +33,5 @@ pub fn sample(r: &Texture, uv: Vec2, wo: Vec3, u: Vec2) -> Option<BsdfSample> {
     if pdf <= 0.0 {
         return None;
     }
-    Some(BsdfSample {
-        wi,
-        weight: r.eval(uv),
-        pdf,
-        delta: false,
-        eta: 1.0,
-    })
+    Some(BsdfSample { wi, weight: r.eval(uv), pdf, delta: false, eta: 1.0 })
 }

@@ -97,10 +97,7 @@ impl Bsdf {
                 if wo.z >= 0.0 {
                     front.sample(uv, wo, u1, u2)
                 } else {
-                    back.sample(uv, flip(wo), u1, u2).map(|s| BsdfSample {
-                        wi: flip(s.wi),
-                        ..s
-                    })
+                    back.sample(uv, flip(wo), u1, u2).map(|s| BsdfSample { wi: flip(s.wi), ..s })
                 }
             }
         }

@@ -33,31 +33,15 @@ impl Accel {
             let triangle = matches!(shape.geometry, Geometry::Mesh(_));
             for i in 0..shape.prim_count() {
                 let (lo, hi) = shape.prim_bounds(i);
-                prims.push(PrimRef {
-                    shape: s as u32,
-                    index: i as u32,
-                    triangle,
-                });
+                prims.push(PrimRef { shape: s as u32, index: i as u32, triangle });
                 aabbs.push(Aabb::new(Vec3A::from(lo), Vec3A::from(hi)));
             }
         }
         if prims.is_empty() {
-            return Accel {
-                bvh: None,
-                prims,
-                verts: Vec::new(),
-            };
+            return Accel { bvh: None, prims, verts: Vec::new() };
         }
-        let bvh = build_cwbvh(
-            &aabbs,
-            BvhBuildParams::medium_build(),
-            &mut Default::default(),
-        );
-        let prims: Vec<PrimRef> = bvh
-            .primitive_indices
-            .iter()
-            .map(|&k| prims[k as usize])
-            .collect();
+        let bvh = build_cwbvh(&aabbs, BvhBuildParams::medium_build(), &mut Default::default());
+        let prims: Vec<PrimRef> = bvh.primitive_indices.iter().map(|&k| prims[k as usize]).collect();
         let verts = prims
             .iter()
             .map(|p| match &shapes[p.shape as usize].geometry {
@@ -65,11 +49,7 @@ impl Accel {
                 _ => [Vec3::ZERO; 3],
             })
             .collect();
-        Accel {
-            bvh: Some(bvh),
-            prims,
-            verts,
-        }
+        Accel { bvh: Some(bvh), prims, verts }
     }
 
     pub fn prim_count(&self) -> usize {
@@ -82,19 +62,11 @@ impl Accel {
 
     /// Intersects the primitive the BVH calls `k`.
     #[inline(always)]
-    fn hit(
-        &self,
-        shapes: &[Shape],
-        k: usize,
-        ray: &Ray,
-        pre: &RayPre,
-        tmax: f32,
-    ) -> Option<(f32, Vec2)> {
+    fn hit(&self, shapes: &[Shape], k: usize, ray: &Ray, pre: &RayPre, tmax: f32) -> Option<(f32, Vec2)> {
         let prim = self.prims[k];
         if prim.triangle {
             let [p0, p1, p2] = self.verts[k];
-            intersect_triangle(ray, pre, tmax, p0, p1, p2)
-                .map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
+            intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
         } else {
             shapes[prim.shape as usize].intersect(prim.index as usize, ray, pre, tmax)
         }
@@ -119,13 +91,7 @@ impl Accel {
         });
         let (k, aux) = best?;
         let prim = self.prims[k];
-        Some(shapes[prim.shape as usize].interaction(
-            prim.shape,
-            prim.index as usize,
-            ray,
-            hit.t,
-            aux,
-        ))
+        Some(shapes[prim.shape as usize].interaction(prim.shape, prim.index as usize, ray, hit.t, aux))
     }
 
     /// Whether anything blocks `ray` within `[tmin, tmax)`.
@@ -135,8 +101,7 @@ impl Accel {
         };
         let pre = RayPre::new(ray.d);
         !bvh.ray_traverse_miss(Self::obvhs_ray(ray), |r, k| {
-            self.hit(shapes, k, ray, &pre, r.tmax)
-                .map_or(f32::INFINITY, |(t, _)| t)
+            self.hit(shapes, k, ray, &pre, r.tmax).map_or(f32::INFINITY, |(t, _)| t)
         })
     }
 }

@@ -25,11 +25,7 @@ pub enum MeshError {
     #[error("mesh has no triangles")]
     Empty,
     #[error("face {face} refers to vertex {index}, but the mesh has {count} vertices")]
-    BadIndex {
-        face: usize,
-        index: u32,
-        count: usize,
-    },
+    BadIndex { face: usize, index: u32, count: usize },
     #[error("vertex {0} has a non-finite coordinate")]
     NonFinite(usize),
 }
@@ -38,11 +34,7 @@ impl Mesh {
     #[inline]
     pub fn tri(&self, i: usize) -> [Vec3; 3] {
         let [a, b, c] = self.tris[i];
-        [
-            self.positions[a as usize],
-            self.positions[b as usize],
-            self.positions[c as usize],
-        ]
+        [self.positions[a as usize], self.positions[b as usize], self.positions[c as usize]]
     }
 
     /// Point, error bound, geometric normal, shading normal, uv and dp/du at barycentrics
@@ -64,18 +56,14 @@ impl Mesh {
             let uv = t0 * b0 + t1 * b1 + t2 * b2;
             let (d1, d2) = (t1 - t0, t2 - t0);
             let det = d1.x * d2.y - d1.y * d2.x;
-            let dpdu = if det.abs() > 1e-12 {
-                (e1 * d2.y - e2 * d1.y) / det
-            } else {
-                e1
-            };
+            let dpdu = if det.abs() > 1e-12 { (e1 * d2.y - e2 * d1.y) / det } else { e1 };
             (uv, dpdu)
         };
         let ns = if self.normals.is_empty() {
             ng
         } else {
-            let n = (self.normals[ia] * b0 + self.normals[ib] * b1 + self.normals[ic] * b2)
-                .normalize_or_zero();
+            let n =
+                (self.normals[ia] * b0 + self.normals[ib] * b1 + self.normals[ic] * b2).normalize_or_zero();
             if n == Vec3::ZERO {
                 ng
             } else {
@@ -145,12 +133,7 @@ impl Mesh {
                 Vec3::new(-1.0, 1.0, 0.0),
             ],
             normals: Vec::new(),
-            uvs: vec![
-                Vec2::new(0.0, 0.0),
-                Vec2::new(1.0, 0.0),
-                Vec2::new(1.0, 1.0),
-                Vec2::new(0.0, 1.0),
-            ],
+            uvs: vec![Vec2::new(0.0, 0.0), Vec2::new(1.0, 0.0), Vec2::new(1.0, 1.0), Vec2::new(0.0, 1.0)],
             tris: vec![[0, 1, 2], [0, 2, 3]],
         }
     }
@@ -182,30 +165,17 @@ impl Mesh {
     /// Loads a Wavefront OBJ (all objects merged). `flip_v` flips texture v, as Mitsuba does by
     /// default (`flip_tex_coords`).
     pub fn load_obj(path: &Path, flip_v: bool) -> Result<Mesh, MeshError> {
-        let opts = tobj::LoadOptions {
-            triangulate: true,
-            single_index: true,
-            ..Default::default()
-        };
-        let (models, _) =
-            tobj::load_obj(path, &opts).map_err(|e| MeshError::Parse(e.to_string()))?;
+        let opts = tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() };
+        let (models, _) = tobj::load_obj(path, &opts).map_err(|e| MeshError::Parse(e.to_string()))?;
         let mut out = Mesh::default();
         let all_n = models.iter().all(|m| !m.mesh.normals.is_empty());
         let all_uv = models.iter().all(|m| !m.mesh.texcoords.is_empty());
         for model in &models {
             let mesh = &model.mesh;
             let base = out.positions.len() as u32;
-            out.positions.extend(
-                mesh.positions
-                    .chunks_exact(3)
-                    .map(|p| Vec3::new(p[0], p[1], p[2])),
-            );
+            out.positions.extend(mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
             if all_n {
-                out.normals.extend(
-                    mesh.normals
-                        .chunks_exact(3)
-                        .map(|n| Vec3::new(n[0], n[1], n[2])),
-                );
+                out.normals.extend(mesh.normals.chunks_exact(3).map(|n| Vec3::new(n[0], n[1], n[2])));
             }
             if all_uv {
                 out.uvs.extend(
@@ -214,11 +184,7 @@ impl Mesh {
                         .map(|t| Vec2::new(t[0], if flip_v { 1.0 - t[1] } else { t[1] })),
                 );
             }
-            out.tris.extend(
-                mesh.indices
-                    .chunks_exact(3)
-                    .map(|t| [t[0] + base, t[1] + base, t[2] + base]),
-            );
+            out.tris.extend(mesh.indices.chunks_exact(3).map(|t| [t[0] + base, t[1] + base, t[2] + base]));
         }
         Ok(out)
     }
@@ -229,33 +195,24 @@ impl Mesh {
         use ply_rs_bw::parser::Parser;
         use ply_rs_bw::ply::{DefaultElement, Property};
         let mut f = std::io::BufReader::new(std::fs::File::open(path)?);
-        let ply = Parser::<DefaultElement>::new()
-            .read_ply(&mut f)
-            .map_err(|e| MeshError::Parse(e.to_string()))?;
+        let ply =
+            Parser::<DefaultElement>::new().read_ply(&mut f).map_err(|e| MeshError::Parse(e.to_string()))?;
         let get = |e: &DefaultElement, names: &[&str]| -> Option<f32> {
-            names
-                .iter()
-                .find_map(|n| e.get(*n).and_then(|p| p.to_f32_lossy()))
+            names.iter().find_map(|n| e.get(*n).and_then(|p| p.to_f32_lossy()))
         };
         let mut out = Mesh::default();
-        let verts = ply
-            .payload
-            .get("vertex")
-            .ok_or_else(|| MeshError::Parse("no 'vertex' element".into()))?;
+        let verts =
+            ply.payload.get("vertex").ok_or_else(|| MeshError::Parse("no 'vertex' element".into()))?;
         for (k, v) in verts.iter().enumerate() {
             let p = match (get(v, &["x"]), get(v, &["y"]), get(v, &["z"])) {
                 (Some(x), Some(y), Some(z)) => Vec3::new(x, y, z),
                 _ => return Err(MeshError::Parse(format!("vertex {k} lacks x, y or z"))),
             };
             out.positions.push(p);
-            if let (Some(x), Some(y), Some(z)) = (get(v, &["nx"]), get(v, &["ny"]), get(v, &["nz"]))
-            {
+            if let (Some(x), Some(y), Some(z)) = (get(v, &["nx"]), get(v, &["ny"]), get(v, &["nz"])) {
                 out.normals.push(Vec3::new(x, y, z));
             }
-            if let (Some(u), Some(w)) = (
-                get(v, &["u", "s", "texture_u"]),
-                get(v, &["v", "t", "texture_v"]),
-            ) {
+            if let (Some(u), Some(w)) = (get(v, &["u", "s", "texture_u"]), get(v, &["v", "t", "texture_v"])) {
                 out.uvs.push(Vec2::new(u, w));
             }
         }
@@ -265,10 +222,7 @@ impl Mesh {
         if out.uvs.len() != out.positions.len() {
             out.uvs.clear();
         }
-        let faces = ply
-            .payload
-            .get("face")
-            .ok_or_else(|| MeshError::Parse("no 'face' element".into()))?;
+        let faces = ply.payload.get("face").ok_or_else(|| MeshError::Parse("no 'face' element".into()))?;
         for (k, f) in faces.iter().enumerate() {
             let idx = f
                 .get("vertex_indices")

@@ -24,12 +24,7 @@ pub struct Ray {
 
 impl Ray {
     pub fn new(o: Vec3, d: Vec3) -> Ray {
-        Ray {
-            o,
-            d,
-            tmin: 0.0,
-            tmax: f32::INFINITY,
-        }
+        Ray { o, d, tmin: 0.0, tmax: f32::INFINITY }
     }
 
     pub fn at(&self, t: f32) -> Vec3 {
@@ -65,12 +60,7 @@ impl Interaction {
         let o = offset_ray_origin(self.p, self.p_err, self.ng, target - self.p);
         let v = target - o;
         let dist = v.length();
-        Ray {
-            o,
-            d: v / dist,
-            tmin: 0.0,
-            tmax: dist * (1.0 - 1e-4),
-        }
+        Ray { o, d: v / dist, tmin: 0.0, tmax: dist * (1.0 - 1e-4) }
     }
 }
 
@@ -106,14 +96,7 @@ impl RayPre {
         if d[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky); // keep the winding
         }
-        RayPre {
-            kx,
-            ky,
-            kz,
-            sx: -d[kx] / d[kz],
-            sy: -d[ky] / d[kz],
-            sz: 1.0 / d[kz],
-        }
+        RayPre { kx, ky, kz, sx: -d[kx] / d[kz], sy: -d[ky] / d[kz], sz: 1.0 / d[kz] }
     }
 }
 
@@ -177,8 +160,7 @@ pub fn intersect_triangle(
     let delta_y = gamma(5) * (max_yt + max_zt);
     let delta_e = 2.0 * (gamma(2) * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt);
     let max_e = u.abs().max(v.abs()).max(w.abs());
-    let delta_t =
-        3.0 * (gamma(3) * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv_det.abs();
+    let delta_t = 3.0 * (gamma(3) * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv_det.abs();
     if t <= delta_t {
         return None;
     }
@@ -226,11 +208,8 @@ mod tests {
 
     #[test]
     fn barycentrics_reconstruct_the_hit_point() {
-        let (p0, p1, p2) = (
-            Vec3::new(-1.0, -1.0, -2.0),
-            Vec3::new(2.0, -1.0, -2.5),
-            Vec3::new(0.0, 2.0, -3.0),
-        );
+        let (p0, p1, p2) =
+            (Vec3::new(-1.0, -1.0, -2.0), Vec3::new(2.0, -1.0, -2.5), Vec3::new(0.0, 2.0, -3.0));
         let ray = Ray::new(Vec3::ZERO, Vec3::new(0.1, 0.05, -1.0).normalize());
         let pre = RayPre::new(ray.d);
         let (t, b0, b1, b2) = intersect_triangle(&ray, &pre, f32::INFINITY, p0, p1, p2).unwrap();

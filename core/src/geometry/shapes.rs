@@ -41,17 +41,8 @@ impl Disk {
     pub fn new(to_world: Mat4) -> Disk {
         let ex = to_world.transform_vector3(Vec3::X);
         let ey = to_world.transform_vector3(Vec3::Y);
-        let normal = to_world
-            .inverse()
-            .transpose()
-            .transform_vector3(Vec3::Z)
-            .normalize();
-        Disk {
-            to_world,
-            to_object: to_world.inverse(),
-            normal,
-            area: PI * ex.cross(ey).length(),
-        }
+        let normal = to_world.inverse().transpose().transform_vector3(Vec3::Z).normalize();
+        Disk { to_world, to_object: to_world.inverse(), normal, area: PI * ex.cross(ey).length() }
     }
 
     /// Mitsuba's disk uv: (r, phi / 2 pi) of object-space point `q`.
@@ -136,18 +127,11 @@ impl Shape {
     /// Nearest intersection of primitive `prim` closer than `tmax`: `(t, aux)`, where `aux`
     /// carries what [`Shape::interaction`] needs (barycentrics for triangles).
     #[inline]
-    pub fn intersect(
-        &self,
-        prim: usize,
-        ray: &Ray,
-        pre: &RayPre,
-        tmax: f32,
-    ) -> Option<(f32, Vec2)> {
+    pub fn intersect(&self, prim: usize, ray: &Ray, pre: &RayPre, tmax: f32) -> Option<(f32, Vec2)> {
         match &self.geometry {
             Geometry::Mesh(m) => {
                 let [p0, p1, p2] = m.tri(prim);
-                intersect_triangle(ray, pre, tmax, p0, p1, p2)
-                    .map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
+                intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
             }
             Geometry::Sphere(s) => intersect_sphere(s, ray, tmax).map(|t| (t, Vec2::ZERO)),
             Geometry::Disk(d) => {
@@ -170,14 +154,7 @@ impl Shape {
     }
 
     /// Full surface information for a hit found by [`Shape::intersect`].
-    pub fn interaction(
-        &self,
-        shape: u32,
-        prim: usize,
-        ray: &Ray,
-        t: f32,
-        aux: Vec2,
-    ) -> Interaction {
+    pub fn interaction(&self, shape: u32, prim: usize, ray: &Ray, t: f32, aux: Vec2) -> Interaction {
         let (p, p_err, mut ng, mut ns, uv, dpdu) = match &self.geometry {
             Geometry::Mesh(m) => m.surface(prim, aux.x, aux.y),
             Geometry::Sphere(s) => {
@@ -198,14 +175,7 @@ impl Shape {
                 }
                 let (s, c) = phi.sin_cos();
                 let dpdu = d.to_world.transform_vector3(Vec3::new(c, s, 0.0));
-                (
-                    p,
-                    p_err,
-                    d.normal,
-                    d.normal,
-                    Vec2::new(r, phi / (2.0 * PI)),
-                    dpdu,
-                )
+                (p, p_err, d.normal, d.normal, Vec2::new(r, phi / (2.0 * PI)), dpdu)
             }
         };
         if self.flip_normals {
@@ -248,12 +218,7 @@ impl Shape {
             Geometry::Sphere(s) => {
                 let n = crate::math::square_to_uniform_sphere(u);
                 let p = s.center + n * s.radius;
-                (
-                    p,
-                    (s.center.abs() + (n * s.radius).abs()) * gamma(6),
-                    n,
-                    s.uv(n),
-                )
+                (p, (s.center.abs() + (n * s.radius).abs()) * gamma(6), n, s.uv(n))
             }
             Geometry::Disk(d) => {
                 let q = crate::math::square_to_uniform_disk_concentric(u);
@@ -261,12 +226,7 @@ impl Shape {
                 (p, p_err, d.normal, Disk::uv(q))
             }
         };
-        SurfacePoint {
-            p,
-            p_err,
-            n: if self.flip_normals { -n } else { n },
-            uv,
-        }
+        SurfacePoint { p, p_err, n: if self.flip_normals { -n } else { n }, uv }
     }
 }
 
@@ -304,11 +264,7 @@ mod tests {
 
     #[test]
     fn sphere_hit_from_outside_and_inside() {
-        let s = Sphere {
-            center: Vec3::new(0.0, 0.0, -5.0),
-            radius: 1.0,
-            rot: Mat3::IDENTITY,
-        };
+        let s = Sphere { center: Vec3::new(0.0, 0.0, -5.0), radius: 1.0, rot: Mat3::IDENTITY };
         let r = Ray::new(Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0));
         assert!((intersect_sphere(&s, &r, f32::INFINITY).unwrap() - 4.0).abs() < 1e-5);
         let r = Ray::new(Vec3::new(0.0, 0.0, -5.0), Vec3::X);

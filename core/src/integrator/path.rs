@@ -17,12 +17,11 @@ use crate::scene::Scene;
 pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> Rgb {
     let plan = &scene.plan;
     let settings = &scene.integrator;
+    if settings.max_depth == 0 {
+        return Rgb::ZERO; // Mitsuba: max_depth 0 renders nothing, not even emitters
+    }
     let n_lights = scene.lights.len();
-    let sel_pdf = if n_lights > 0 {
-        1.0 / n_lights as f32
-    } else {
-        0.0
-    };
+    let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
 
     let mut l = Rgb::ZERO;
     let mut beta = Rgb::ONE;
@@ -63,10 +62,7 @@ pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> 
                 let w = if unweighted {
                     1.0
                 } else {
-                    mis_power(
-                        prev_pdf,
-                        sel_pdf * light.pdf_hit(&scene.shapes, prev_p, ray.d, &it),
-                    )
+                    mis_power(prev_pdf, sel_pdf * light.pdf_hit(&scene.shapes, prev_p, ray.d, &it))
                 };
                 l += beta * le * w;
             }
@@ -102,11 +98,8 @@ pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> 
                         st.shadow_rays += 1;
                         if !scene.occluded(&shadow) {
                             let light_pdf = ls.pdf * sel_pdf;
-                            let w = if ls.delta {
-                                1.0
-                            } else {
-                                mis_power(light_pdf, bsdf.pdf(it.uv, wo, wi))
-                            };
+                            let w =
+                                if ls.delta { 1.0 } else { mis_power(light_pdf, bsdf.pdf(it.uv, wo, wi)) };
                             l += beta * f * ls.li * (w / light_pdf);
                         }
                     }

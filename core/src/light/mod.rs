@@ -83,12 +83,7 @@ impl Light {
         for c in &mut cdf {
             *c /= acc;
         }
-        Light::Area {
-            shape: shape_idx,
-            radiance,
-            cdf,
-            area: acc,
-        }
+        Light::Area { shape: shape_idx, radiance, cdf, area: acc }
     }
 
     pub fn is_infinite(&self) -> bool {
@@ -96,20 +91,9 @@ impl Light {
     }
 
     /// Samples the light from `it` with `u_prim` (choosing a primitive) and `u`.
-    pub fn sample(
-        &self,
-        shapes: &[Shape],
-        it: &Interaction,
-        u_prim: f32,
-        u: Vec2,
-    ) -> Option<LightSample> {
+    pub fn sample(&self, shapes: &[Shape], it: &Interaction, u_prim: f32, u: Vec2) -> Option<LightSample> {
         match self {
-            Light::Area {
-                shape,
-                radiance,
-                cdf,
-                area,
-            } => {
+            Light::Area { shape, radiance, cdf, area } => {
                 let sh = &shapes[*shape as usize];
                 if let Geometry::Sphere(s) = &sh.geometry {
                     if !sh.flip_normals {
@@ -141,10 +125,7 @@ impl Light {
                     target: Some(crate::math::offset_ray_origin(sp.p, sp.p_err, sp.n, -wi)),
                 })
             }
-            Light::Point {
-                position,
-                intensity,
-            } => {
+            Light::Point { position, intensity } => {
                 let v = *position - it.p;
                 let dist2 = v.length_squared();
                 if dist2 == 0.0 {
@@ -222,9 +203,7 @@ impl Light {
 fn pick(cdf: &[f64], u: f32) -> usize {
     let n = cdf.len() - 1;
     let u = u as f64;
-    cdf.partition_point(|&c| c <= u)
-        .saturating_sub(1)
-        .min(n - 1)
+    cdf.partition_point(|&c| c <= u).saturating_sub(1).min(n - 1)
 }
 
 /// 1 - cos(theta_max) of the cone a sphere subtends from `p`, or `None` when `p` is inside it.
@@ -254,9 +233,7 @@ fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Optio
     let sin_t = sin2_t.sqrt();
     let (sp, cp) = (2.0 * PI * u.x).sin_cos();
     let frame = Frame::from_normal(axis);
-    let wi = frame
-        .to_world(Vec3::new(sin_t * cp, sin_t * sp, cos_t))
-        .normalize();
+    let wi = frame.to_world(Vec3::new(sin_t * cp, sin_t * sp, cos_t)).normalize();
     // Distance to the near intersection with the sphere along wi.
     let ds = dc * cos_t - (radius * radius - dc * dc * sin2_t).max(0.0).sqrt();
     let hit = p + wi * ds;
@@ -294,9 +271,6 @@ mod tests {
         let d = 1.0e4f32;
         let r = d * sin2.sqrt();
         let e = cone_extent(Vec3::new(0.0, 0.0, d), r, Vec3::ZERO).unwrap();
-        assert!(
-            (e - one_minus_cos).abs() / one_minus_cos < 1e-4,
-            "{e} vs {one_minus_cos}"
-        );
+        assert!((e - one_minus_cos).abs() / one_minus_cos < 1e-4, "{e} vs {one_minus_cos}");
     }
 }

@@ -44,10 +44,7 @@ pub fn build(doc: &Doc) -> R<Scene> {
     let root = doc.root;
     for tag in ["film", "rfilter", "sampler"] {
         if let Some((_, _, pos)) = doc.children(root, tag).first() {
-            return Err(doc.err(
-                *pos,
-                format!("<{tag}> belongs inside a <sensor>, not at scene level"),
-            ));
+            return Err(doc.err(*pos, format!("<{tag}> belongs inside a <sensor>, not at scene level")));
         }
     }
     // Top-level BSDF and texture definitions are built even if unused, so errors surface.
@@ -68,26 +65,18 @@ pub fn build(doc: &Doc) -> R<Scene> {
         [] => return Err(doc.err(doc.obj(root).pos, "the scene has no <sensor>")),
         [(_, s, _)] => b.sensor(*s)?,
         [_, (_, _, pos), ..] => {
-            return Err(doc.err(
-                *pos,
-                "more than one <sensor>: Furnace renders one camera per scene",
-            ))
+            return Err(doc.err(*pos, "more than one <sensor>: Furnace renders one camera per scene"))
         }
     };
     let integrator = match doc.children(root, "integrator").as_slice() {
-        [] => PathSettings {
-            max_depth: u32::MAX,
-            rr_depth: 5,
-            hide_emitters: false,
-        },
+        [] => PathSettings { max_depth: u32::MAX, rr_depth: 5, hide_emitters: false },
         [(_, i, _)] => b.integrator(*i)?,
         [_, (_, _, pos), ..] => return Err(doc.err(*pos, "more than one <integrator>")),
     };
     doc.check_all_used(root)?;
 
-    let infinite_lights = (0..b.lights.len() as u32)
-        .filter(|&i| b.lights[i as usize].is_infinite())
-        .collect();
+    let infinite_lights =
+        (0..b.lights.len() as u32).filter(|&i| b.lights[i as usize].is_infinite()).collect();
     let accel = Accel::build(&b.shapes);
     let mut scene = Scene {
         file: doc.file.clone(),
@@ -118,12 +107,7 @@ impl Builder<'_> {
         let o = self.doc.obj(i);
         self.err(
             o.pos,
-            format!(
-                "unsupported {} plugin '{}' (supported: {})",
-                o.tag,
-                o.plugin,
-                supported.join(", ")
-            ),
+            format!("unsupported {} plugin '{}' (supported: {})", o.tag, o.plugin, supported.join(", ")),
         )
     }
 
@@ -132,10 +116,7 @@ impl Builder<'_> {
         if v <= 0 || v > u32::MAX as i64 {
             return Err(self.err(
                 self.doc.pos_of(i, name),
-                format!(
-                    "'{name}' of {} must be a positive integer, found {v}",
-                    self.doc.describe(i)
-                ),
+                format!("'{name}' of {} must be a positive integer, found {v}", self.doc.describe(i)),
             ));
         }
         Ok(v as u32)
@@ -146,10 +127,7 @@ impl Builder<'_> {
         if !(v >= 0.0) || !v.is_finite() {
             return Err(self.err(
                 self.doc.pos_of(i, name),
-                format!(
-                    "'{name}' of {} must be a finite number >= 0, found {v}",
-                    self.doc.describe(i)
-                ),
+                format!("'{name}' of {} must be a finite number >= 0, found {v}", self.doc.describe(i)),
             ));
         }
         Ok(v)
@@ -172,20 +150,12 @@ impl Builder<'_> {
                 filter: Filter::Gaussian { stddev: 0.5 },
             },
             [(_, f, _)] => self.film(*f)?,
-            [_, (_, _, pos), ..] => {
-                return Err(self.err(*pos, "more than one <film> in the sensor"))
-            }
+            [_, (_, _, pos), ..] => return Err(self.err(*pos, "more than one <film> in the sensor")),
         };
         let (spp, seed, sampler_type) = match doc.children(i, "sampler").as_slice() {
             [] => (4, 0, "independent".to_string()),
             [(_, s, _)] => {
-                let known = [
-                    "independent",
-                    "stratified",
-                    "multijitter",
-                    "orthogonal",
-                    "ldsampler",
-                ];
+                let known = ["independent", "stratified", "multijitter", "orthogonal", "ldsampler"];
                 if !known.contains(&doc.obj(*s).plugin.as_str()) {
                     return Err(self.unsupported_plugin(*s, &known));
                 }
@@ -193,15 +163,10 @@ impl Builder<'_> {
                 let seed = doc.int_or(*s, "seed", 0)?;
                 (spp, seed as u64, doc.obj(*s).plugin.clone())
             }
-            [_, (_, _, pos), ..] => {
-                return Err(self.err(*pos, "more than one <sampler> in the sensor"))
-            }
+            [_, (_, _, pos), ..] => return Err(self.err(*pos, "more than one <sampler> in the sensor")),
         };
         let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
-        for (k, axis) in [to_world.x_axis, to_world.y_axis, to_world.z_axis]
-            .iter()
-            .enumerate()
-        {
+        for (k, axis) in [to_world.x_axis, to_world.y_axis, to_world.z_axis].iter().enumerate() {
             if (axis.truncate().length() - 1.0).abs() > 1e-3 {
                 return Err(self.err(
                     doc.pos_of(i, "to_world"),
@@ -213,16 +178,12 @@ impl Builder<'_> {
             }
         }
         let fov = doc.float(i, "fov")?.ok_or_else(|| {
-            self.err(
-                doc.obj(i).pos,
-                format!("{} needs a 'fov' (degrees)", doc.describe(i)),
-            )
+            self.err(doc.obj(i).pos, format!("{} needs a 'fov' (degrees)", doc.describe(i)))
         })?;
         if !(fov > 0.0 && fov < 180.0) {
-            return Err(self.err(
-                doc.pos_of(i, "fov"),
-                format!("'fov' must lie in (0, 180) degrees, found {fov}"),
-            ));
+            return Err(
+                self.err(doc.pos_of(i, "fov"), format!("'fov' must lie in (0, 180) degrees, found {fov}"))
+            );
         }
         let axis = doc.string(i, "fov_axis")?.unwrap_or_else(|| "x".into());
         let tan_half = tan_half_fov(fov, &axis, film.width, film.height).ok_or_else(|| {
@@ -237,40 +198,22 @@ impl Builder<'_> {
             return Err(self.err(doc.pos_of(i, "far_clip"), "far_clip must exceed near_clip"));
         }
         let lens = if plugin == "thinlens" {
-            let aperture_radius = doc.float(i, "aperture_radius")?.ok_or_else(|| {
-                self.err(
-                    doc.obj(i).pos,
-                    "thinlens needs 'aperture_radius' (world units)",
-                )
-            })?;
+            let aperture_radius = doc
+                .float(i, "aperture_radius")?
+                .ok_or_else(|| self.err(doc.obj(i).pos, "thinlens needs 'aperture_radius' (world units)"))?;
             if !(aperture_radius >= 0.0) {
-                return Err(self.err(
-                    doc.pos_of(i, "aperture_radius"),
-                    "'aperture_radius' must be >= 0",
-                ));
+                return Err(self.err(doc.pos_of(i, "aperture_radius"), "'aperture_radius' must be >= 0"));
             }
             let focus_distance = doc.float_or(i, "focus_distance", far_clip)?;
             if !(focus_distance > 0.0) {
-                return Err(self.err(
-                    doc.pos_of(i, "focus_distance"),
-                    "'focus_distance' must be > 0",
-                ));
+                return Err(self.err(doc.pos_of(i, "focus_distance"), "'focus_distance' must be > 0"));
             }
-            Some(ThinLens {
-                aperture_radius,
-                focus_distance,
-            })
+            Some(ThinLens { aperture_radius, focus_distance })
         } else {
             None
         };
-        let camera = Camera {
-            to_world,
-            film_size: (film.width, film.height),
-            tan_half,
-            near_clip,
-            far_clip,
-            lens,
-        };
+        let camera =
+            Camera { to_world, film_size: (film.width, film.height), tan_half, near_clip, far_clip, lens };
         Ok((camera, film, spp, seed, sampler_type))
     }
 
@@ -316,19 +259,14 @@ impl Builder<'_> {
                 "box" => {
                     let radius = doc.float_or(*f, "radius", 0.5)?;
                     if !(radius > 0.0 && radius <= 8.0) {
-                        return Err(
-                            self.err(doc.pos_of(*f, "radius"), "box radius must lie in (0, 8]")
-                        );
+                        return Err(self.err(doc.pos_of(*f, "radius"), "box radius must lie in (0, 8]"));
                     }
                     Filter::Box { radius }
                 }
                 "gaussian" => {
                     let stddev = doc.float_or(*f, "stddev", 0.5)?;
                     if !(stddev > 0.0 && stddev <= 2.0) {
-                        return Err(self.err(
-                            doc.pos_of(*f, "stddev"),
-                            "gaussian stddev must lie in (0, 2]",
-                        ));
+                        return Err(self.err(doc.pos_of(*f, "stddev"), "gaussian stddev must lie in (0, 2]"));
                     }
                     Filter::Gaussian { stddev }
                 }
@@ -354,21 +292,14 @@ impl Builder<'_> {
         }
         let max_depth = doc.int_or(i, "max_depth", -1)?;
         if max_depth < -1 {
-            return Err(self.err(
-                doc.pos_of(i, "max_depth"),
-                "max_depth must be -1 (unlimited) or >= 0",
-            ));
+            return Err(self.err(doc.pos_of(i, "max_depth"), "max_depth must be -1 (unlimited) or >= 0"));
         }
         let rr_depth = doc.int_or(i, "rr_depth", 5)?;
         if rr_depth <= 0 {
             return Err(self.err(doc.pos_of(i, "rr_depth"), "rr_depth must be > 0"));
         }
         Ok(PathSettings {
-            max_depth: if max_depth < 0 {
-                u32::MAX
-            } else {
-                max_depth.min(u32::MAX as i64) as u32
-            },
+            max_depth: if max_depth < 0 { u32::MAX } else { max_depth.min(u32::MAX as i64) as u32 },
             rr_depth: rr_depth.min(u32::MAX as i64) as u32,
             hide_emitters: doc.boolean_or(i, "hide_emitters", false)?,
         })
@@ -405,9 +336,8 @@ impl Builder<'_> {
         let o = doc.obj(i);
         let tex = match o.plugin.as_str() {
             "bitmap" => {
-                let rel = doc
-                    .string(i, "filename")?
-                    .ok_or_else(|| self.err(o.pos, "bitmap needs a 'filename'"))?;
+                let rel =
+                    doc.string(i, "filename")?.ok_or_else(|| self.err(o.pos, "bitmap needs a 'filename'"))?;
                 let path = doc.resolve_path(doc.pos_of(i, "filename"), &rel)?;
                 let raw = doc.boolean_or(i, "raw", false)?;
                 let filter = match doc.string(i, "filter_type")?.as_deref() {
@@ -430,31 +360,20 @@ impl Builder<'_> {
                     })?,
                 };
                 let m = doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY);
-                let to_uv = [
-                    [m.x_axis.x, m.y_axis.x, m.w_axis.x],
-                    [m.x_axis.y, m.y_axis.y, m.w_axis.y],
-                ];
+                let to_uv = [[m.x_axis.x, m.y_axis.x, m.w_axis.x], [m.x_axis.y, m.y_axis.y, m.w_axis.y]];
                 let key = (path.clone(), raw);
                 let bitmap = match self.bitmaps.get(&key) {
                     Some(b) => b.clone(),
                     None => {
                         let b = Arc::new(Bitmap::load(&path, raw).map_err(|e| {
-                            self.err(
-                                doc.pos_of(i, "filename"),
-                                format!("cannot load texture '{rel}': {e}"),
-                            )
+                            self.err(doc.pos_of(i, "filename"), format!("cannot load texture '{rel}': {e}"))
                         })?);
                         self.assets.push(path.clone());
                         self.bitmaps.insert(key, b.clone());
                         b
                     }
                 };
-                Texture::Bitmap(Arc::new(BitmapTexture {
-                    bitmap,
-                    filter,
-                    wrap,
-                    to_uv,
-                }))
+                Texture::Bitmap(Arc::new(BitmapTexture { bitmap, filter, wrap, to_uv }))
             }
             _ => return Err(self.unsupported_plugin(i, &["bitmap"])),
         };
@@ -476,28 +395,19 @@ impl Builder<'_> {
     fn bsdf_value(&mut self, i: usize) -> R<Bsdf> {
         let doc = self.doc;
         Ok(match doc.obj(i).plugin.as_str() {
-            "diffuse" => Bsdf::Diffuse {
-                reflectance: self.color(i, "reflectance", Rgb::splat(0.5))?,
-            },
+            "diffuse" => Bsdf::Diffuse { reflectance: self.color(i, "reflectance", Rgb::splat(0.5))? },
             "twosided" => {
                 let nested = doc.children(i, "bsdf");
                 match nested.as_slice() {
                     [(_, f, _)] => {
                         let front = self.bsdf_value(*f)?;
-                        Bsdf::TwoSided {
-                            front: Box::new(front.clone()),
-                            back: Box::new(front),
-                        }
+                        Bsdf::TwoSided { front: Box::new(front.clone()), back: Box::new(front) }
                     }
                     [(_, f, _), (_, bk, _)] => Bsdf::TwoSided {
                         front: Box::new(self.bsdf_value(*f)?),
                         back: Box::new(self.bsdf_value(*bk)?),
                     },
-                    _ => {
-                        return Err(
-                            self.err(doc.obj(i).pos, "twosided needs one or two nested <bsdf>s")
-                        )
-                    }
+                    _ => return Err(self.err(doc.obj(i).pos, "twosided needs one or two nested <bsdf>s")),
                 }
             }
             _ => return Err(self.unsupported_plugin(i, &["diffuse", "twosided"])),
@@ -516,11 +426,7 @@ impl Builder<'_> {
         };
         let geometry = match o.plugin.as_str() {
             "rectangle" | "cube" => {
-                let mut m = if o.plugin == "cube" {
-                    Mesh::cube()
-                } else {
-                    Mesh::rectangle()
-                };
+                let mut m = if o.plugin == "cube" { Mesh::cube() } else { Mesh::rectangle() };
                 m.transform_flat(&to_world);
                 Geometry::Mesh(m)
             }
@@ -550,38 +456,22 @@ impl Builder<'_> {
                 let center = doc.point(i, "center")?.unwrap_or(Vec3::ZERO);
                 let radius = doc.float_or(i, "radius", 1.0)?;
                 if !(radius > 0.0) || !radius.is_finite() {
-                    return Err(self.err(
-                        doc.pos_of(i, "radius"),
-                        format!("sphere radius must be > 0, found {radius}"),
-                    ));
+                    return Err(self
+                        .err(doc.pos_of(i, "radius"), format!("sphere radius must be > 0, found {radius}")));
                 }
-                let m = to_world
-                    * Mat4::from_translation(center)
-                    * Mat4::from_scale(Vec3::splat(radius));
+                let m = to_world * Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius));
                 let c = m.transform_point3(Vec3::ZERO);
-                let axes = [
-                    m.x_axis.truncate(),
-                    m.y_axis.truncate(),
-                    m.z_axis.truncate(),
-                ];
+                let axes = [m.x_axis.truncate(), m.y_axis.truncate(), m.z_axis.truncate()];
                 let r = axes[0].length();
                 if axes.iter().any(|a| (a.length() - r).abs() > 1e-4 * r) {
-                    return Err(self.err(
-                        doc.pos_of(i, "to_world"),
-                        "sphere to_world must scale uniformly",
-                    ));
+                    return Err(self.err(doc.pos_of(i, "to_world"), "sphere to_world must scale uniformly"));
                 }
                 let rot = Mat3::from_cols(axes[0] / r, axes[1] / r, axes[2] / r).transpose();
-                Geometry::Sphere(Sphere {
-                    center: c,
-                    radius: r,
-                    rot,
-                })
+                Geometry::Sphere(Sphere { center: c, radius: r, rot })
             }
             "disk" => Geometry::Disk(Disk::new(to_world)),
             _ => {
-                return Err(self
-                    .unsupported_plugin(i, &["obj", "ply", "rectangle", "cube", "sphere", "disk"]))
+                return Err(self.unsupported_plugin(i, &["obj", "ply", "rectangle", "cube", "sphere", "disk"]))
             }
         };
         let emitters = doc.children(i, "emitter");
@@ -590,9 +480,7 @@ impl Builder<'_> {
                 // Mitsuba's default material: diffuse 0.5, or black on an emitter.
                 let r = if emitters.is_empty() { 0.5 } else { 0.0 };
                 let id = self.bsdfs.len() as u32;
-                self.bsdfs.push(Bsdf::Diffuse {
-                    reflectance: Texture::Const(Rgb::splat(r)),
-                });
+                self.bsdfs.push(Bsdf::Diffuse { reflectance: Texture::Const(Rgb::splat(r)) });
                 id
             }
             [(_, b, _)] => self.bsdf(*b)?,
@@ -634,48 +522,26 @@ impl Builder<'_> {
             "point" => {
                 let intensity = match self.color(i, "intensity", Rgb::ONE)? {
                     Texture::Const(c) => c,
-                    _ => {
-                        return Err(self.err(
-                            doc.pos_of(i, "intensity"),
-                            "point intensity must be a colour",
-                        ))
-                    }
+                    _ => return Err(self.err(doc.pos_of(i, "intensity"), "point intensity must be a colour")),
                 };
                 let m = doc.transform(i, "to_world")?;
                 let p = doc.point(i, "position")?;
                 let position = match (m, p) {
                     (Some(_), Some(_)) => {
-                        return Err(self.err(
-                            pos,
-                            "point emitter: give 'position' or 'to_world', not both",
-                        ))
+                        return Err(self.err(pos, "point emitter: give 'position' or 'to_world', not both"))
                     }
                     (Some(m), None) => m.transform_point3(Vec3::ZERO),
                     (None, Some(p)) => p,
                     (None, None) => Vec3::ZERO,
                 };
-                Light::Point {
-                    position,
-                    intensity,
-                }
+                Light::Point { position, intensity }
             }
             "constant" => match self.color(i, "radiance", Rgb::ONE)? {
                 Texture::Const(radiance) => Light::Constant { radiance },
-                _ => {
-                    return Err(self.err(
-                        doc.pos_of(i, "radiance"),
-                        "constant radiance must be a colour",
-                    ))
-                }
+                _ => return Err(self.err(doc.pos_of(i, "radiance"), "constant radiance must be a colour")),
             },
-            "area" => {
-                return Err(self.err(pos, "an 'area' emitter must be nested inside a <shape>"))
-            }
-            _ => {
-                return Err(
-                    self.unsupported_plugin(i, &["point", "constant", "area (inside a shape)"])
-                )
-            }
+            "area" => return Err(self.err(pos, "an 'area' emitter must be nested inside a <shape>")),
+            _ => return Err(self.unsupported_plugin(i, &["point", "constant", "area (inside a shape)"])),
         };
         self.lights.push(light);
         Ok(())

@@ -27,21 +27,11 @@ pub struct SceneError {
 
 impl SceneError {
     pub fn at(file: &Path, pos: Pos, message: impl Into<String>) -> SceneError {
-        SceneError {
-            file: file.to_path_buf(),
-            line: pos.line,
-            col: pos.col,
-            message: message.into(),
-        }
+        SceneError { file: file.to_path_buf(), line: pos.line, col: pos.col, message: message.into() }
     }
 
     pub fn file(file: &Path, message: impl Into<String>) -> SceneError {
-        SceneError {
-            file: file.to_path_buf(),
-            line: 0,
-            col: 0,
-            message: message.into(),
-        }
+        SceneError { file: file.to_path_buf(), line: 0, col: 0, message: message.into() }
     }
 }
 
@@ -99,11 +89,7 @@ impl Scene {
     }
 
     /// Loads scene XML held in memory; relative asset paths resolve against `path`'s folder.
-    pub fn load_str(
-        text: &str,
-        path: &Path,
-        defines: &[(String, String)],
-    ) -> Result<Scene, SceneError> {
+    pub fn load_str(text: &str, path: &Path, defines: &[(String, String)]) -> Result<Scene, SceneError> {
         let doc = xml::parse_str(text, path, defines)?;
         build::build(&doc)
     }

@@ -84,17 +84,8 @@ pub struct Doc {
     pub root: usize,
 }
 
-const OBJECT_TAGS: &[&str] = &[
-    "shape",
-    "bsdf",
-    "texture",
-    "emitter",
-    "sensor",
-    "film",
-    "rfilter",
-    "sampler",
-    "integrator",
-];
+const OBJECT_TAGS: &[&str] =
+    &["shape", "bsdf", "texture", "emitter", "sensor", "film", "rfilter", "sampler", "integrator"];
 
 impl Doc {
     pub fn err(&self, pos: Pos, message: impl Into<String>) -> SceneError {
@@ -137,10 +128,9 @@ impl Doc {
                     Some(n) => format!("{} named '{}'", self.describe(c.obj), n),
                     None => self.describe(c.obj),
                 };
-                return Err(self.err(
-                    c.pos,
-                    format!("unsupported nested {} inside {}", what, self.describe(i)),
-                ));
+                return Err(
+                    self.err(c.pos, format!("unsupported nested {} inside {}", what, self.describe(i)))
+                );
             }
             self.check_all_used(c.obj)?;
         }
@@ -171,12 +161,7 @@ impl Doc {
     }
 
     pub fn pos_of(&self, i: usize, name: &str) -> Pos {
-        self.objs[i]
-            .props
-            .iter()
-            .find(|p| p.name == name)
-            .map(|p| p.pos)
-            .unwrap_or(self.objs[i].pos)
+        self.objs[i].props.iter().find(|p| p.name == name).map(|p| p.pos).unwrap_or(self.objs[i].pos)
     }
 
     pub fn float(&self, i: usize, name: &str) -> Result<Option<f32>, SceneError> {
@@ -277,10 +262,7 @@ impl Doc {
     /// The nested object of `i` passed under parameter `name` (`<texture name="reflectance">`
     /// or `<ref name="reflectance" id="..."/>`), marked as used.
     pub fn named_child(&self, i: usize, name: &str) -> Option<usize> {
-        let c = self.objs[i]
-            .children
-            .iter()
-            .find(|c| c.name.as_deref() == Some(name))?;
+        let c = self.objs[i].children.iter().find(|c| c.name.as_deref() == Some(name))?;
         c.used.set(true);
         Some(c.obj)
     }
@@ -291,12 +273,10 @@ impl Doc {
         let canon = joined
             .canonicalize()
             .map_err(|e| self.err(pos, format!("cannot open file '{}': {e}", joined.display())))?;
-        let base = self.dir.canonicalize().map_err(|e| {
-            self.err(
-                pos,
-                format!("cannot open scene folder '{}': {e}", self.dir.display()),
-            )
-        })?;
+        let base = self
+            .dir
+            .canonicalize()
+            .map_err(|e| self.err(pos, format!("cannot open scene folder '{}': {e}", self.dir.display())))?;
         if !canon.starts_with(&base) {
             return Err(self.err(
                 pos,
@@ -321,24 +301,11 @@ pub fn parse_file(path: &Path, defines: &[(String, String)]) -> Result<Doc, Scen
 pub fn parse_str(text: &str, path: &Path, defines: &[(String, String)]) -> Result<Doc, SceneError> {
     let xml = roxmltree::Document::parse(text).map_err(|e| {
         let p = e.pos();
-        SceneError::at(
-            path,
-            Pos {
-                line: p.row,
-                col: p.col,
-            },
-            format!("malformed XML: {e}"),
-        )
+        SceneError::at(path, Pos { line: p.row, col: p.col }, format!("malformed XML: {e}"))
     })?;
     let dir = path
         .parent()
-        .map(|p| {
-            if p.as_os_str().is_empty() {
-                Path::new(".")
-            } else {
-                p
-            }
-        })
+        .map(|p| if p.as_os_str().is_empty() { Path::new(".") } else { p })
         .unwrap_or(Path::new("."))
         .to_path_buf();
     let mut parser = Parser {
@@ -350,19 +317,12 @@ pub fn parse_str(text: &str, path: &Path, defines: &[(String, String)]) -> Resul
     };
     let root = xml.root_element();
     if root.tag_name().name() != "scene" {
-        return Err(parser.err(
-            root,
-            format!(
-                "the root element must be <scene>, found <{}>",
-                root.tag_name().name()
-            ),
-        ));
+        return Err(
+            parser.err(root, format!("the root element must be <scene>, found <{}>", root.tag_name().name()))
+        );
     }
     if root.attribute("version").is_none() {
-        return Err(parser.err(
-            root,
-            "<scene> needs a version attribute, e.g. version=\"3.0.0\"",
-        ));
+        return Err(parser.err(root, "<scene> needs a version attribute, e.g. version=\"3.0.0\""));
     }
     // <default>s first, so that `$name` works anywhere; -D overrides them.
     for c in root.children().filter(|c| c.is_element()) {
@@ -376,12 +336,7 @@ pub fn parse_str(text: &str, path: &Path, defines: &[(String, String)]) -> Resul
         parser.params.insert(k.clone(), v.clone());
     }
     let root_idx = parser.parse_object(root, "scene".into(), String::new())?;
-    Ok(Doc {
-        file: path.to_path_buf(),
-        dir,
-        objs: parser.objs,
-        root: root_idx,
-    })
+    Ok(Doc { file: path.to_path_buf(), dir, objs: parser.objs, root: root_idx })
 }
 
 struct Parser<'a, 'i> {
@@ -395,10 +350,7 @@ struct Parser<'a, 'i> {
 impl Parser<'_, '_> {
     fn pos(&self, node: roxmltree::Node) -> Pos {
         let p = self.xml.text_pos_at(node.range().start);
-        Pos {
-            line: p.row,
-            col: p.col,
-        }
+        Pos { line: p.row, col: p.col }
     }
 
     fn err(&self, node: roxmltree::Node, message: impl Into<String>) -> SceneError {
@@ -446,10 +398,7 @@ impl Parser<'_, '_> {
 
     fn required_attr(&self, node: roxmltree::Node, name: &str) -> Result<String, SceneError> {
         self.attr(node, name)?.ok_or_else(|| {
-            self.err(
-                node,
-                format!("<{}> needs a '{}' attribute", node.tag_name().name(), name),
-            )
+            self.err(node, format!("<{}> needs a '{}' attribute", node.tag_name().name(), name))
         })
     }
 
@@ -484,10 +433,7 @@ impl Parser<'_, '_> {
                 "ref" => {
                     let id = self.required_attr(c, "id")?;
                     let target = *self.ids.get(&id).ok_or_else(|| {
-                        self.err(
-                            c,
-                            format!("<ref id=\"{id}\"/> names no object defined before it"),
-                        )
+                        self.err(c, format!("<ref id=\"{id}\"/> names no object defined before it"))
                     })?;
                     obj.children.push(Child {
                         name: self.attr(c, "name")?,
@@ -500,18 +446,10 @@ impl Parser<'_, '_> {
                     let plugin = self.required_attr(c, "type")?;
                     let name = self.attr(c, "name")?;
                     let idx = self.parse_object(c, t.to_string(), plugin)?;
-                    obj.children.push(Child {
-                        name,
-                        obj: idx,
-                        pos: self.pos(c),
-                        used: Cell::new(false),
-                    });
+                    obj.children.push(Child { name, obj: idx, pos: self.pos(c), used: Cell::new(false) });
                 }
                 other => {
-                    return Err(self.err(
-                        c,
-                        format!("unsupported element <{other}> inside <{}>", obj.tag),
-                    ))
+                    return Err(self.err(c, format!("unsupported element <{other}> inside <{}>", obj.tag)))
                 }
             }
         }
@@ -536,19 +474,12 @@ impl Parser<'_, '_> {
         if obj.props.iter().any(|p| p.name == name) {
             return Err(self.err(node, format!("parameter '{name}' is given twice")));
         }
-        obj.props.push(Prop {
-            name,
-            value,
-            pos: self.pos(node),
-            used: Cell::new(false),
-        });
+        obj.props.push(Prop { name, value, pos: self.pos(node), used: Cell::new(false) });
         Ok(())
     }
 
     fn number(&self, node: roxmltree::Node, s: &str) -> Result<f64, SceneError> {
-        s.trim()
-            .parse::<f64>()
-            .map_err(|_| self.err(node, format!("expected a number, found \"{s}\"")))
+        s.trim().parse::<f64>().map_err(|_| self.err(node, format!("expected a number, found \"{s}\"")))
     }
 
     fn numbers(&self, node: roxmltree::Node, s: &str) -> Result<Vec<f64>, SceneError> {
@@ -567,10 +498,7 @@ impl Parser<'_, '_> {
                 1 if splat => Ok(Vec3::splat(n[0] as f32)),
                 _ => Err(self.err(
                     node,
-                    format!(
-                        "expected {} numbers, found \"{v}\"",
-                        if splat { "1 or 3" } else { "3" }
-                    ),
+                    format!("expected {} numbers, found \"{v}\"", if splat { "1 or 3" } else { "3" }),
                 )),
             };
         }
@@ -599,28 +527,22 @@ impl Parser<'_, '_> {
                 match n.len() {
                     1 => Value::Rgb(Vec3::splat(n[0] as f32)),
                     3 => Value::Rgb(Vec3::new(n[0] as f32, n[1] as f32, n[2] as f32)),
-                    _ => {
-                        return Err(
-                            self.err(node, format!("<rgb> expects 1 or 3 numbers, found \"{v}\""))
-                        )
-                    }
+                    _ => return Err(self.err(node, format!("<rgb> expects 1 or 3 numbers, found \"{v}\""))),
                 }
             }
             _ => {
                 let v = self.required_attr(node, "value")?;
                 match tag {
-                    "integer" => Value::Integer(v.trim().parse::<i64>().map_err(|_| {
-                        self.err(node, format!("expected an integer, found \"{v}\""))
-                    })?),
+                    "integer" => Value::Integer(
+                        v.trim()
+                            .parse::<i64>()
+                            .map_err(|_| self.err(node, format!("expected an integer, found \"{v}\"")))?,
+                    ),
                     "float" => Value::Float(self.number(node, &v)?),
                     "boolean" => match v.trim().to_ascii_lowercase().as_str() {
                         "true" => Value::Boolean(true),
                         "false" => Value::Boolean(false),
-                        _ => {
-                            return Err(
-                                self.err(node, format!("expected true or false, found \"{v}\""))
-                            )
-                        }
+                        _ => return Err(self.err(node, format!("expected true or false, found \"{v}\""))),
                     },
                     _ => Value::Str(v),
                 }
@@ -650,8 +572,8 @@ impl Parser<'_, '_> {
                     match f.len() {
                         // Row-major in the file; glam is column-major.
                         16 => Mat4::from_cols_array(&[
-                            f[0], f[4], f[8], f[12], f[1], f[5], f[9], f[13], f[2], f[6], f[10],
-                            f[14], f[3], f[7], f[11], f[15],
+                            f[0], f[4], f[8], f[12], f[1], f[5], f[9], f[13], f[2], f[6], f[10], f[14], f[3],
+                            f[7], f[11], f[15],
                         ]),
                         9 => Mat4::from_cols(
                             Vec4::new(f[0], f[3], f[6], 0.0),
@@ -659,11 +581,7 @@ impl Parser<'_, '_> {
                             Vec4::new(f[2], f[5], f[8], 0.0),
                             Vec4::W,
                         ),
-                        k => {
-                            return Err(
-                                self.err(c, format!("<matrix> expects 9 or 16 numbers, found {k}"))
-                            )
-                        }
+                        k => return Err(self.err(c, format!("<matrix> expects 9 or 16 numbers, found {k}"))),
                     }
                 }
                 "lookat" => {
@@ -671,41 +589,26 @@ impl Parser<'_, '_> {
                         let s = self.required_attr(c, name)?;
                         let n = self.numbers(c, &s)?;
                         if n.len() != 3 {
-                            return Err(
-                                self.err(c, format!("'{name}' expects 3 numbers, found \"{s}\""))
-                            );
+                            return Err(self.err(c, format!("'{name}' expects 3 numbers, found \"{s}\"")));
                         }
                         Ok(Vec3::new(n[0] as f32, n[1] as f32, n[2] as f32))
                     };
                     let origin = p("origin")?;
                     let target = p("target")?;
-                    let up = if c.attribute("up").is_some() {
-                        p("up")?
-                    } else {
-                        Vec3::Y
-                    };
+                    let up = if c.attribute("up").is_some() { p("up")? } else { Vec3::Y };
                     let dir = (target - origin).normalize_or_zero();
                     if dir == Vec3::ZERO {
                         return Err(self.err(c, "<lookat> origin and target coincide"));
                     }
                     let left = up.cross(dir);
                     if left.length_squared() < 1e-12 {
-                        return Err(
-                            self.err(c, "<lookat> 'up' is parallel to the viewing direction")
-                        );
+                        return Err(self.err(c, "<lookat> 'up' is parallel to the viewing direction"));
                     }
                     let left = left.normalize();
                     let new_up = dir.cross(left);
-                    Mat4::from_cols(
-                        left.extend(0.0),
-                        new_up.extend(0.0),
-                        dir.extend(0.0),
-                        origin.extend(1.0),
-                    )
+                    Mat4::from_cols(left.extend(0.0), new_up.extend(0.0), dir.extend(0.0), origin.extend(1.0))
                 }
-                other => {
-                    return Err(self.err(c, format!("unsupported transform operation <{other}>")))
-                }
+                other => return Err(self.err(c, format!("unsupported transform operation <{other}>"))),
             };
             m = op * m;
         }

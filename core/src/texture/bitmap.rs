@@ -69,11 +69,7 @@ pub struct Bitmap {
 impl Bitmap {
     /// Loads PNG, JPEG, HDR or EXR. Integer formats are sRGB-decoded unless `raw`.
     pub fn load(path: &Path, raw: bool) -> Result<Bitmap, BitmapError> {
-        let ext = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .unwrap_or("")
-            .to_ascii_lowercase();
+        let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
         let bmp = if ext == "exr" {
             Self::load_exr(path)?
         } else {
@@ -82,10 +78,7 @@ impl Bitmap {
                 .with_guessed_format()
                 .map_err(image::ImageError::IoError)?
                 .decode()?;
-            let is_float = matches!(
-                img.color(),
-                image::ColorType::Rgb32F | image::ColorType::Rgba32F
-            );
+            let is_float = matches!(img.color(), image::ColorType::Rgb32F | image::ColorType::Rgba32F);
             let rgb = img.to_rgb32f(); // normalises integers to [0, 1]; no linearisation
             let decode = !is_float && !raw;
             let texels = rgb
@@ -93,21 +86,13 @@ impl Bitmap {
                 .map(|p| {
                     let c = Rgb::new(p[0], p[1], p[2]);
                     if decode {
-                        Rgb::new(
-                            srgb_to_linear(c.x),
-                            srgb_to_linear(c.y),
-                            srgb_to_linear(c.z),
-                        )
+                        Rgb::new(srgb_to_linear(c.x), srgb_to_linear(c.y), srgb_to_linear(c.z))
                     } else {
                         c
                     }
                 })
                 .collect();
-            Bitmap {
-                width: rgb.width() as usize,
-                height: rgb.height() as usize,
-                texels,
-            }
+            Bitmap { width: rgb.width() as usize, height: rgb.height() as usize, texels }
         };
         if bmp.width == 0 || bmp.height == 0 {
             return Err(BitmapError::Empty);
@@ -144,10 +129,7 @@ impl Bitmap {
     #[inline]
     pub fn nearest(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
         let x = wrap.apply((uv.x * self.width as f32).floor() as i64, self.width as i64);
-        let y = wrap.apply(
-            (uv.y * self.height as f32).floor() as i64,
-            self.height as i64,
-        );
+        let y = wrap.apply((uv.y * self.height as f32).floor() as i64, self.height as i64);
         self.texel(x, y)
     }
 
@@ -167,10 +149,7 @@ impl Bitmap {
     }
 
     pub fn mean(&self) -> Rgb {
-        let s = self
-            .texels
-            .iter()
-            .fold(glam::DVec3::ZERO, |a, t| a + t.as_dvec3());
+        let s = self.texels.iter().fold(glam::DVec3::ZERO, |a, t| a + t.as_dvec3());
         (s / self.texels.len() as f64).as_vec3()
     }
 }
@@ -190,19 +169,9 @@ mod tests {
 
     #[test]
     fn bilinear_hits_texel_centres_exactly() {
-        let b = Bitmap {
-            width: 2,
-            height: 1,
-            texels: vec![Rgb::splat(0.0), Rgb::splat(1.0)],
-        };
-        assert_eq!(
-            b.bilinear(Vec2::new(0.25, 0.5), WrapMode::Clamp),
-            Rgb::splat(0.0)
-        );
-        assert_eq!(
-            b.bilinear(Vec2::new(0.75, 0.5), WrapMode::Clamp),
-            Rgb::splat(1.0)
-        );
+        let b = Bitmap { width: 2, height: 1, texels: vec![Rgb::splat(0.0), Rgb::splat(1.0)] };
+        assert_eq!(b.bilinear(Vec2::new(0.25, 0.5), WrapMode::Clamp), Rgb::splat(0.0));
+        assert_eq!(b.bilinear(Vec2::new(0.75, 0.5), WrapMode::Clamp), Rgb::splat(1.0));
         assert!((b.bilinear(Vec2::new(0.5, 0.5), WrapMode::Clamp).x - 0.5).abs() < 1e-6);
     }
 }
