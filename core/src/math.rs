@@ -77,15 +77,16 @@ pub fn offset_ray_origin(p: Vec3, p_err: Vec3, n: Vec3, w: Vec3) -> Vec3 {
     if w.dot(n) < 0.0 {
         offset = -offset;
     }
-    let mut po = p + offset;
+    let mut po = (p + offset).to_array();
+    let off = offset.to_array();
     for i in 0..3 {
-        if offset[i] > 0.0 {
+        if off[i] > 0.0 {
             po[i] = next_float_up(po[i]);
-        } else if offset[i] < 0.0 {
+        } else if off[i] < 0.0 {
             po[i] = next_float_down(po[i]);
         }
     }
-    po
+    Vec3::from_array(po)
 }
 
 /// Orthonormal basis whose third axis is the shading normal; `to_local` maps world directions

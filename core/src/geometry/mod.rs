@@ -96,6 +96,7 @@ impl RayPre {
         if d[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky); // keep the winding
         }
+        let d = d.to_array();
         RayPre { kx, ky, kz, sx: -d[kx] / d[kz], sy: -d[ky] / d[kz], sz: 1.0 / d[kz] }
     }
 }
@@ -113,9 +114,10 @@ pub fn intersect_triangle(
     p2: Vec3,
 ) -> Option<(f32, f32, f32, f32)> {
     use crate::math::gamma;
-    let a = p0 - ray.o;
-    let b = p1 - ray.o;
-    let c = p2 - ray.o;
+    // Plain arrays: indexing a Vec3 with a runtime axis compiles to a match per access.
+    let a = (p0 - ray.o).to_array();
+    let b = (p1 - ray.o).to_array();
+    let c = (p2 - ray.o).to_array();
     let (kx, ky, kz) = (pre.kx, pre.ky, pre.kz);
     let ax = a[kx] + pre.sx * a[kz];
     let ay = a[ky] + pre.sy * a[kz];
