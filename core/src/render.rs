@@ -13,7 +13,7 @@ use crate::sampler::SampleStream;
 use crate::scene::Scene;
 
 /// Pixels `[x0, x1) x [y0, y1)` of the output (cropped) image, samples `[s0, s1)` of each.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub struct Region {
     pub x0: u32,
     pub y0: u32,

@@ -5,6 +5,7 @@
 //! with every sample range, pass by pass). Leases, progress and the partial-accumulation
 //! encoding join when the farm protocol does.
 
+pub use furnace_core::Region;
 use serde::{Deserialize, Serialize};
 
 /// The render settings of a job (DESIGN.md defaults: 1920 x 1080 at 4096 spp, 64-pixel tiles,
@@ -35,23 +36,13 @@ impl Default for JobSettings {
     }
 }
 
-/// One unit of work: pixels `[x0, x1) x [y0, y1)`, samples `[s0, s1)` of each.
+/// One unit of work: a [`Region`] (pixels `[x0, x1) x [y0, y1)`, samples `[s0, s1)`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct ChunkSpec {
     /// Position in the plan; chunk ids are stable for given settings.
     pub id: u32,
-    pub x0: u32,
-    pub y0: u32,
-    pub x1: u32,
-    pub y1: u32,
-    pub s0: u64,
-    pub s1: u64,
-}
-
-impl ChunkSpec {
-    pub fn region(&self) -> furnace_core::Region {
-        furnace_core::Region { x0: self.x0, y0: self.y0, x1: self.x1, y1: self.y1, s0: self.s0, s1: self.s1 }
-    }
+    #[serde(flatten)]
+    pub region: Region,
 }
 
 /// The chunk plan of a job, in hand-out order: all tiles of the first sample range before any
@@ -60,15 +51,7 @@ pub fn chunk_plan(s: &JobSettings) -> Vec<ChunkSpec> {
     furnace_core::plan_regions(s.width, s.height, s.spp, s.tile_size, s.spp_per_chunk)
         .into_iter()
         .enumerate()
-        .map(|(id, r)| ChunkSpec {
-            id: id as u32,
-            x0: r.x0,
-            y0: r.y0,
-            x1: r.x1,
-            y1: r.y1,
-            s0: r.s0,
-            s1: r.s1,
-        })
+        .map(|(id, region)| ChunkSpec { id: id as u32, region })
         .collect()
 }
 
@@ -88,7 +71,7 @@ mod tests {
         };
         let plan = chunk_plan(&s);
         let mut covered = vec![0u32; (s.width * s.height) as usize * s.spp as usize];
-        for c in &plan {
+        for c in plan.iter().map(|c| c.region) {
             for y in c.y0..c.y1 {
                 for x in c.x0..c.x1 {
                     for i in c.s0..c.s1 {
@@ -100,7 +83,7 @@ mod tests {
         assert!(covered.iter().all(|&n| n == 1));
         // 3 x 2 tiles, sample ranges [0,64) [64,128) [128,150), pass by pass.
         assert_eq!(plan.len(), 18);
-        assert!(plan.windows(2).all(|w| w[0].s0 <= w[1].s0));
+        assert!(plan.windows(2).all(|w| w[0].region.s0 <= w[1].region.s0));
         assert_eq!(plan.iter().map(|c| c.id).collect::<Vec<_>>(), (0..18).collect::<Vec<_>>());
     }
 

@@ -8,5 +8,5 @@ use furnace_proto::ChunkSpec;
 
 /// Renders one chunk: its tile plus the filter margin, its sample range.
 pub fn render_chunk(scene: &Scene, chunk: &ChunkSpec, seed: u64) -> (Accum, Stats) {
-    render_region(scene, &chunk.region(), seed)
+    render_region(scene, &chunk.region, seed)
 }
