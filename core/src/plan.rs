@@ -98,16 +98,12 @@ impl RenderPlan {
 }
 
 fn collect_bsdf_names(b: &Bsdf, out: &mut Vec<&'static str>) {
-    let name = match b {
-        Bsdf::Diffuse { .. } => "diffuse",
-        Bsdf::TwoSided { front, back } => {
-            collect_bsdf_names(front, out);
-            collect_bsdf_names(back, out);
-            "twosided"
-        }
-    };
-    if !out.contains(&name) {
-        out.push(name);
+    if let Bsdf::TwoSided { front, back } = b {
+        collect_bsdf_names(front, out);
+        collect_bsdf_names(back, out);
+    }
+    if !out.contains(&b.name()) {
+        out.push(b.name());
     }
 }
 

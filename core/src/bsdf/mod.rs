@@ -1,20 +1,33 @@
 //! BSDFs in the local shading frame (z = shading normal). Directions point away from the
 //! surface: `wo` towards the viewer, `wi` towards the light. `eval` includes the cosine
 //! foreshortening |cos theta_i|, so a path's throughput is multiplied by `eval / pdf`.
+//! Delta lobes have `eval` = `pdf` = 0 and are reached only by `sample`.
 
+pub mod conductor;
+pub mod dielectric;
 pub mod diffuse;
+pub mod microfacet;
+pub mod plastic;
+#[cfg(test)]
+mod tests;
 
 use glam::{Vec2, Vec3};
 
 use crate::math::Rgb;
 use crate::texture::Texture;
 
+pub use conductor::{Conductor, Roughness};
+pub use dielectric::Dielectric;
+pub use microfacet::Distribution;
+pub use plastic::Plastic;
+
 /// A sampled incident direction.
 #[derive(Clone, Copy, Debug)]
 pub struct BsdfSample {
     pub wi: Vec3,
-    /// eval / pdf (for delta lobes, the lobe's weight).
+    /// eval / pdf (for delta lobes, the lobe's weight / its selection probability).
     pub weight: Rgb,
+    /// Solid-angle pdf (for delta lobes, the probability of choosing the lobe).
     pub pdf: f32,
     pub delta: bool,
     /// Relative index of refraction crossed (1 for reflection).
@@ -27,14 +40,36 @@ pub enum Bsdf {
     Diffuse { reflectance: Texture },
     /// Mitsuba `twosided`: `front` on the front side, `back` (mirrored) on the back side.
     TwoSided { front: Box<Bsdf>, back: Box<Bsdf> },
+    /// `conductor` and `roughconductor`.
+    Conductor(Conductor),
+    /// `dielectric`, `roughdielectric` and `thindielectric`.
+    Dielectric(Dielectric),
+    /// `plastic`.
+    Plastic(Plastic),
 }
 
 impl Bsdf {
+    /// Plugin name, for the render plan.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Bsdf::Diffuse { .. } => "diffuse",
+            Bsdf::TwoSided { .. } => "twosided",
+            Bsdf::Conductor(c) if c.rough.is_some() => "roughconductor",
+            Bsdf::Conductor(_) => "conductor",
+            Bsdf::Dielectric(d) if d.thin => "thindielectric",
+            Bsdf::Dielectric(d) if d.rough.is_some() => "roughdielectric",
+            Bsdf::Dielectric(_) => "dielectric",
+            Bsdf::Plastic(_) => "plastic",
+        }
+    }
+
     /// Whether the BSDF has a non-delta component, so that light sampling can help.
     pub fn is_smooth(&self) -> bool {
         match self {
-            Bsdf::Diffuse { .. } => true,
+            Bsdf::Diffuse { .. } | Bsdf::Plastic(_) => true,
             Bsdf::TwoSided { front, back } => front.is_smooth() || back.is_smooth(),
+            Bsdf::Conductor(c) => c.rough.is_some(),
+            Bsdf::Dielectric(d) => d.rough.is_some() && !d.thin,
         }
     }
 
@@ -43,6 +78,7 @@ impl Bsdf {
         match self {
             Bsdf::Diffuse { reflectance } => reflectance.is_black(),
             Bsdf::TwoSided { front, back } => front.is_black() && back.is_black(),
+            _ => false,
         }
     }
 
@@ -55,6 +91,17 @@ impl Bsdf {
                 t.extend(back.textures());
                 t
             }
+            Bsdf::Conductor(c) => {
+                let mut t = vec![&c.specular_reflectance];
+                t.extend(rough_textures(&c.rough));
+                t
+            }
+            Bsdf::Dielectric(d) => {
+                let mut t = vec![&d.specular_reflectance, &d.specular_transmittance];
+                t.extend(rough_textures(&d.rough));
+                t
+            }
+            Bsdf::Plastic(p) => vec![&p.diffuse_reflectance, &p.specular_reflectance],
         }
     }
 
@@ -69,11 +116,13 @@ impl Bsdf {
                     back.eval(uv, flip(wo), flip(wi))
                 }
             }
+            Bsdf::Conductor(c) => c.eval(uv, wo, wi),
+            Bsdf::Dielectric(d) => d.eval(uv, wo, wi),
+            Bsdf::Plastic(p) => p.eval(uv, wo, wi),
         }
     }
 
     #[inline]
-    #[allow(clippy::only_used_in_recursion)] // textured lobes will read uv
     pub fn pdf(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> f32 {
         match self {
             Bsdf::Diffuse { .. } => diffuse::pdf(wo, wi),
@@ -84,12 +133,14 @@ impl Bsdf {
                     back.pdf(uv, flip(wo), flip(wi))
                 }
             }
+            Bsdf::Conductor(c) => c.pdf(uv, wo, wi),
+            Bsdf::Dielectric(d) => d.pdf(uv, wo, wi),
+            Bsdf::Plastic(p) => p.pdf(uv, wo, wi),
         }
     }
 
     /// Samples `wi` given `wo`; `u1` picks a lobe, `u2` the direction within it.
     #[inline]
-    #[allow(clippy::only_used_in_recursion)] // u1 picks lobes of multi-lobe BSDFs
     pub fn sample(&self, uv: Vec2, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
         match self {
             Bsdf::Diffuse { reflectance } => diffuse::sample(reflectance, uv, wo, u2),
@@ -100,8 +151,15 @@ impl Bsdf {
                     back.sample(uv, flip(wo), u1, u2).map(|s| BsdfSample { wi: flip(s.wi), ..s })
                 }
             }
+            Bsdf::Conductor(c) => c.sample(uv, wo, u2),
+            Bsdf::Dielectric(d) => d.sample(uv, wo, u1, u2),
+            Bsdf::Plastic(p) => p.sample(uv, wo, u1, u2),
         }
     }
+}
+
+fn rough_textures(r: &Option<Roughness>) -> Vec<&Texture> {
+    r.as_ref().map(|r| vec![&r.alpha_u, &r.alpha_v]).unwrap_or_default()
 }
 
 #[inline]

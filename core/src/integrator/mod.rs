@@ -17,7 +17,7 @@ pub struct Stats {
     /// Shadow (any-hit) queries.
     pub shadow_rays: u64,
     /// Light samples drawn, by [`LightKind`] (index `kind as usize`).
-    pub light_samples: [u64; 3],
+    pub light_samples: [u64; LightKind::COUNT],
     /// BSDF samples drawn.
     pub bsdf_samples: u64,
     /// Escaped rays that looked up lights at infinity.
@@ -33,7 +33,7 @@ impl Stats {
         self.lens_samples += o.lens_samples;
         self.rays += o.rays;
         self.shadow_rays += o.shadow_rays;
-        for k in 0..3 {
+        for k in 0..LightKind::COUNT {
             self.light_samples[k] += o.light_samples[k];
         }
         self.bsdf_samples += o.bsdf_samples;

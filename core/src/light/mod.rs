@@ -1,8 +1,12 @@
-//! Emitters: `area` (on any shape), `point` and `constant`.
+//! Emitters: `area` (on any shape), `point`, `spot`, `directional`, `constant` and `envmap`.
 //!
 //! `sample` returns a direction towards the light from a reference point with its radiance and
 //! its solid-angle pdf; `pdf_hit` gives the pdf with which `sample` would have produced a
 //! surface point that a BSDF-sampled ray hit, so that both strategies can be weighted by MIS.
+
+pub mod envmap;
+
+pub use envmap::EnvMap;
 
 use glam::{Vec2, Vec3};
 
@@ -15,17 +19,31 @@ use crate::texture::Texture;
 pub enum LightKind {
     Area,
     Point,
+    Spot,
+    Directional,
     Constant,
+    Envmap,
 }
 
 impl LightKind {
-    pub const ALL: [LightKind; 3] = [LightKind::Area, LightKind::Point, LightKind::Constant];
+    pub const COUNT: usize = 6;
+    pub const ALL: [LightKind; LightKind::COUNT] = [
+        LightKind::Area,
+        LightKind::Point,
+        LightKind::Spot,
+        LightKind::Directional,
+        LightKind::Constant,
+        LightKind::Envmap,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
             LightKind::Area => "area",
             LightKind::Point => "point",
+            LightKind::Spot => "spot",
+            LightKind::Directional => "directional",
             LightKind::Constant => "constant",
+            LightKind::Envmap => "envmap",
         }
     }
 }
@@ -43,9 +61,26 @@ pub enum Light {
         position: Vec3,
         intensity: Rgb,
     },
+    /// Mitsuba's `spot`: intensity at the axis (+z of `to_world`), full up to `beam_width`,
+    /// falling linearly in angle to 0 at `cutoff`.
+    Spot {
+        position: Vec3,
+        axis: Vec3,
+        intensity: Rgb,
+        cos_cutoff: f32,
+        cos_beam: f32,
+        cutoff: f32,
+        beam: f32,
+    },
+    /// Light from one direction: `direction` is where the light travels.
+    Directional {
+        direction: Vec3,
+        irradiance: Rgb,
+    },
     Constant {
         radiance: Rgb,
     },
+    Envmap(std::sync::Arc<EnvMap>),
 }
 
 /// A light sample as seen from a reference point.
@@ -67,7 +102,10 @@ impl Light {
         match self {
             Light::Area { .. } => LightKind::Area,
             Light::Point { .. } => LightKind::Point,
+            Light::Spot { .. } => LightKind::Spot,
+            Light::Directional { .. } => LightKind::Directional,
             Light::Constant { .. } => LightKind::Constant,
+            Light::Envmap(_) => LightKind::Envmap,
         }
     }
 
@@ -86,8 +124,17 @@ impl Light {
         Light::Area { shape: shape_idx, radiance, cdf, area: acc }
     }
 
+    /// Lights that escaped rays can hit (not the delta `directional`).
     pub fn is_infinite(&self) -> bool {
-        matches!(self, Light::Constant { .. })
+        matches!(self, Light::Constant { .. } | Light::Envmap(_))
+    }
+
+    /// Whether sampling this light can ever produce light (an all-black envmap cannot).
+    pub fn can_sample(&self) -> bool {
+        match self {
+            Light::Envmap(e) => e.can_sample(),
+            _ => true,
+        }
     }
 
     /// Samples the light from `it` with `u_prim` (choosing a primitive) and `u`.
@@ -139,6 +186,32 @@ impl Light {
                     target: Some(*position),
                 })
             }
+            Light::Spot { position, axis, intensity, cos_cutoff, cos_beam, cutoff, beam } => {
+                let v = *position - it.p;
+                let dist2 = v.length_squared();
+                if dist2 == 0.0 {
+                    return None;
+                }
+                let wi = v / dist2.sqrt();
+                let cos = (-wi).dot(*axis);
+                let falloff = if cos >= *cos_beam {
+                    1.0
+                } else if cos <= *cos_cutoff {
+                    return None;
+                } else {
+                    ((cutoff - crate::math::safe_acos(cos)) / (cutoff - beam)).clamp(0.0, 1.0)
+                };
+                Some(LightSample {
+                    wi,
+                    li: *intensity * (falloff / dist2),
+                    pdf: 1.0,
+                    delta: true,
+                    target: Some(*position),
+                })
+            }
+            Light::Directional { direction, irradiance } => {
+                Some(LightSample { wi: -*direction, li: *irradiance, pdf: 1.0, delta: true, target: None })
+            }
             Light::Constant { radiance } => Some(LightSample {
                 wi: square_to_uniform_sphere(u),
                 li: *radiance,
@@ -146,6 +219,10 @@ impl Light {
                 delta: false,
                 target: None,
             }),
+            Light::Envmap(e) => {
+                let (wi, pdf) = e.sample(u)?;
+                Some(LightSample { wi, li: e.eval(wi), pdf, delta: false, target: None })
+            }
         }
     }
 
@@ -169,15 +246,15 @@ impl Light {
                 let dist2 = (hit.p - p_ref).length_squared();
                 dist2 / (cos_l * *area as f32)
             }
-            Light::Point { .. } => 0.0,
-            Light::Constant { .. } => INV_FOUR_PI,
+            _ => 0.0,
         }
     }
 
     /// Solid-angle pdf with which [`Light::sample`] yields direction `d` of a light at infinity.
-    pub fn pdf_infinite(&self, _d: Vec3) -> f32 {
+    pub fn pdf_infinite(&self, d: Vec3) -> f32 {
         match self {
             Light::Constant { .. } => INV_FOUR_PI,
+            Light::Envmap(e) => e.pdf(d),
             _ => 0.0,
         }
     }
@@ -191,9 +268,10 @@ impl Light {
     }
 
     /// Radiance arriving from infinity along direction `-d` (a ray travelling along `d` escaped).
-    pub fn le_infinite(&self, _d: Vec3) -> Rgb {
+    pub fn le_infinite(&self, d: Vec3) -> Rgb {
         match self {
             Light::Constant { radiance } => *radiance,
+            Light::Envmap(e) => e.eval(d),
             _ => Rgb::ZERO,
         }
     }

@@ -8,11 +8,13 @@ use glam::{Mat3, Mat4, Vec3};
 
 use super::xml::{Doc, Pos};
 use super::{FilmSettings, PathSettings, Scene, SceneError};
-use crate::bsdf::Bsdf;
+use crate::bsdf::conductor::{conductor_preset, CONDUCTOR_PRESETS};
+use crate::bsdf::microfacet::fresnel_diffuse_reflectance;
+use crate::bsdf::{Bsdf, Conductor, Dielectric, Distribution, Plastic, Roughness};
 use crate::camera::{tan_half_fov, Camera, ThinLens};
 use crate::film::Filter;
 use crate::geometry::{Accel, Disk, Geometry, Mesh, Shape, Sphere};
-use crate::light::Light;
+use crate::light::{EnvMap, Light};
 use crate::math::Rgb;
 use crate::plan::RenderPlan;
 use crate::texture::{Bitmap, BitmapTexture, FilterType, Texture, WrapMode};
@@ -410,8 +412,192 @@ impl Builder<'_> {
                     _ => return Err(self.err(doc.obj(i).pos, "twosided needs one or two nested <bsdf>s")),
                 }
             }
-            _ => return Err(self.unsupported_plugin(i, &["diffuse", "twosided"])),
+            "conductor" | "roughconductor" => {
+                let (eta, k) = self.conductor_ior(i)?;
+                Bsdf::Conductor(Conductor {
+                    eta,
+                    k,
+                    specular_reflectance: self.color(i, "specular_reflectance", Rgb::ONE)?,
+                    rough: self.roughness(i)?,
+                })
+            }
+            "dielectric" | "roughdielectric" | "thindielectric" => {
+                let int_ior = self.ior(i, "int_ior", "bk7")?;
+                let ext_ior = self.ior(i, "ext_ior", "air")?;
+                Bsdf::Dielectric(Dielectric {
+                    eta: int_ior / ext_ior,
+                    specular_reflectance: self.color(i, "specular_reflectance", Rgb::ONE)?,
+                    specular_transmittance: self.color(i, "specular_transmittance", Rgb::ONE)?,
+                    rough: self.roughness(i)?,
+                    thin: doc.obj(i).plugin == "thindielectric",
+                })
+            }
+            "plastic" => {
+                let eta = self.ior(i, "int_ior", "polypropylene")? / self.ior(i, "ext_ior", "air")?;
+                let diffuse_reflectance = self.color(i, "diffuse_reflectance", Rgb::splat(0.5))?;
+                let specular_reflectance = self.color(i, "specular_reflectance", Rgb::ONE)?;
+                let d = diffuse_reflectance.mean().element_sum() / 3.0;
+                let s = specular_reflectance.mean().element_sum() / 3.0;
+                Bsdf::Plastic(Plastic {
+                    eta,
+                    fdr_int: fresnel_diffuse_reflectance(1.0 / eta),
+                    nonlinear: doc.boolean_or(i, "nonlinear", false)?,
+                    specular_weight: s / (d + s),
+                    diffuse_reflectance,
+                    specular_reflectance,
+                })
+            }
+            _ => {
+                return Err(self.unsupported_plugin(
+                    i,
+                    &[
+                        "diffuse",
+                        "twosided",
+                        "conductor",
+                        "roughconductor",
+                        "dielectric",
+                        "roughdielectric",
+                        "thindielectric",
+                        "plastic",
+                    ],
+                ))
+            }
         })
+    }
+
+    /// A colour parameter that must be constant.
+    fn const_color(&mut self, i: usize, name: &str, default: Rgb) -> R<Rgb> {
+        match self.color(i, name, default)? {
+            Texture::Const(c) => Ok(c),
+            _ => Err(self.err(
+                self.doc.pos_of(i, name),
+                format!("'{name}' of {} must be a colour, not a texture", self.doc.describe(i)),
+            )),
+        }
+    }
+
+    /// The rotation part of `to_world`; refuses scaling and shearing.
+    fn rotation(&mut self, i: usize) -> R<Mat3> {
+        let m = self.doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
+        let r = Mat3::from_mat4(m);
+        let ortho = (r.transpose() * r - Mat3::IDENTITY).to_cols_array().iter().all(|v| v.abs() < 1e-3);
+        if !ortho {
+            return Err(self.err(
+                self.doc.pos_of(i, "to_world"),
+                format!("the to_world of {} must be a rotation", self.doc.describe(i)),
+            ));
+        }
+        Ok(r)
+    }
+
+    /// A float parameter that may also be a texture (its red channel is used).
+    fn float_texture(&mut self, i: usize, name: &str, default: f32) -> R<Texture> {
+        if self.doc.has(i, name) {
+            let v = self.doc.float(i, name)?.unwrap_or(default);
+            if !v.is_finite() {
+                return Err(self.err(self.doc.pos_of(i, name), format!("'{name}' must be finite")));
+            }
+            return Ok(Texture::Const(Rgb::splat(v)));
+        }
+        self.color(i, name, Rgb::splat(default))
+    }
+
+    /// `distribution` and `alpha` / `alpha_u` + `alpha_v` of the rough plugins; `None` for the
+    /// smooth ones.
+    fn roughness(&mut self, i: usize) -> R<Option<Roughness>> {
+        let doc = self.doc;
+        if !doc.obj(i).plugin.starts_with("rough") {
+            return Ok(None);
+        }
+        let dist = match doc.string(i, "distribution")?.as_deref() {
+            None | Some("beckmann") => Distribution::Beckmann,
+            Some("ggx") => Distribution::Ggx,
+            Some(other) => {
+                return Err(self.err(
+                    doc.pos_of(i, "distribution"),
+                    format!("unknown distribution '{other}' (expected beckmann or ggx)"),
+                ))
+            }
+        };
+        if !doc.boolean_or(i, "sample_visible", true)? && dist == Distribution::Ggx {
+            return Err(self.err(
+                doc.pos_of(i, "sample_visible"),
+                "sample_visible=false is not supported: Furnace always samples GGX's visible normals",
+            ));
+        }
+        let has_uv = doc.has(i, "alpha_u") || doc.named_child_exists(i, "alpha_u");
+        let (alpha_u, alpha_v) = if has_uv {
+            if doc.has(i, "alpha") {
+                return Err(
+                    self.err(doc.pos_of(i, "alpha"), "give 'alpha' or 'alpha_u' and 'alpha_v', not both")
+                );
+            }
+            (self.float_texture(i, "alpha_u", 0.1)?, self.float_texture(i, "alpha_v", 0.1)?)
+        } else {
+            let a = self.float_texture(i, "alpha", 0.1)?;
+            (a.clone(), a)
+        };
+        for a in [&alpha_u, &alpha_v] {
+            if let Texture::Const(c) = a {
+                if !(c.x >= 0.0) {
+                    return Err(self.err(doc.obj(i).pos, format!("alpha must be >= 0, found {}", c.x)));
+                }
+            }
+        }
+        Ok(Some(Roughness { dist, alpha_u, alpha_v }))
+    }
+
+    /// `material` preset or `eta` + `k` of a conductor.
+    fn conductor_ior(&mut self, i: usize) -> R<(Rgb, Rgb)> {
+        let doc = self.doc;
+        let material = doc.string(i, "material")?;
+        let has_eta_k = doc.has(i, "eta") || doc.has(i, "k");
+        match (material, has_eta_k) {
+            (Some(_), true) => {
+                Err(self.err(doc.pos_of(i, "material"), "give 'material' or 'eta' and 'k', not both"))
+            }
+            (None, true) => {
+                let eta = doc.rgb(i, "eta")?.unwrap_or(Rgb::ZERO);
+                let k = doc.rgb(i, "k")?.unwrap_or(Rgb::ONE);
+                Ok((eta, k))
+            }
+            (m, false) => {
+                let name = m.unwrap_or_else(|| "none".into());
+                conductor_preset(&name).ok_or_else(|| {
+                    self.err(
+                        doc.pos_of(i, "material"),
+                        format!(
+                            "unknown conductor material '{name}' (known: {})",
+                            CONDUCTOR_PRESETS.join(", ")
+                        ),
+                    )
+                })
+            }
+        }
+    }
+
+    /// An index of refraction: a number, or one of Mitsuba's named media.
+    fn ior(&mut self, i: usize, name: &str, default: &str) -> R<f32> {
+        let doc = self.doc;
+        let pos = doc.pos_of(i, name);
+        let v = if doc.has(i, name) && doc.string(i, name).is_err() {
+            doc.float(i, name)?.unwrap_or(1.0)
+        } else {
+            let n = doc.string(i, name)?.unwrap_or_else(|| default.to_string());
+            named_ior(&n).ok_or_else(|| {
+                self.err(
+                    pos,
+                    format!(
+                        "unknown index of refraction '{n}' (a number, or one of: {})",
+                        IOR_NAMES.join(", ")
+                    ),
+                )
+            })?
+        };
+        if !(v > 0.0) || !v.is_finite() {
+            return Err(self.err(pos, format!("'{name}' must be a positive number, found {v}")));
+        }
+        Ok(v)
     }
 
     fn shape(&mut self, i: usize) -> R<()> {
@@ -540,10 +726,111 @@ impl Builder<'_> {
                 Texture::Const(radiance) => Light::Constant { radiance },
                 _ => return Err(self.err(doc.pos_of(i, "radiance"), "constant radiance must be a colour")),
             },
+            "envmap" => {
+                let rel =
+                    doc.string(i, "filename")?.ok_or_else(|| self.err(pos, "envmap needs a 'filename'"))?;
+                let fpos = doc.pos_of(i, "filename");
+                let path = doc.resolve_path(fpos, &rel)?;
+                let scale = self.nonneg_float(i, "scale", 1.0)?;
+                let to_world = self.rotation(i)?;
+                let filter = match doc.string(i, "filter_type")?.as_deref() {
+                    None | Some("bilinear") => FilterType::Bilinear,
+                    Some("nearest") => FilterType::Nearest,
+                    Some(o) => {
+                        return Err(self.err(
+                            doc.pos_of(i, "filter_type"),
+                            format!("unknown filter_type '{o}' (expected bilinear or nearest)"),
+                        ))
+                    }
+                };
+                if doc.boolean_or(i, "mis_compensation", false)? {
+                    return Err(
+                        self.err(doc.pos_of(i, "mis_compensation"), "mis_compensation is not supported")
+                    );
+                }
+                let bitmap = Bitmap::load(&path, false)
+                    .map_err(|e| self.err(fpos, format!("cannot load envmap '{rel}': {e}")))?;
+                self.assets.push(path);
+                Light::Envmap(Arc::new(EnvMap::new(Arc::new(bitmap), scale, to_world, filter)))
+            }
+            "directional" => {
+                let irradiance = self.const_color(i, "irradiance", Rgb::ONE)?;
+                let direction = match (doc.point(i, "direction")?, doc.transform(i, "to_world")?) {
+                    (Some(_), Some(_)) => {
+                        return Err(self.err(pos, "directional: give 'direction' or 'to_world', not both"))
+                    }
+                    (Some(d), None) => d,
+                    (None, Some(m)) => m.transform_vector3(Vec3::Z),
+                    (None, None) => Vec3::Z,
+                };
+                if direction.length_squared() == 0.0 || !direction.is_finite() {
+                    return Err(self.err(pos, "directional: the direction must be a non-zero vector"));
+                }
+                Light::Directional { direction: direction.normalize(), irradiance }
+            }
+            "spot" => {
+                let intensity = self.const_color(i, "intensity", Rgb::ONE)?;
+                let cutoff = doc.float_or(i, "cutoff_angle", 20.0)?;
+                let beam = doc.float_or(i, "beam_width", cutoff * 0.75)?;
+                if !(cutoff > 0.0 && cutoff <= 180.0 && beam > 0.0 && beam <= cutoff) {
+                    return Err(self.err(
+                        pos,
+                        format!("spot: need 0 < beam_width ({beam}) <= cutoff_angle ({cutoff}) <= 180"),
+                    ));
+                }
+                let m = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
+                let (cutoff, beam) = (cutoff.to_radians(), beam.to_radians());
+                Light::Spot {
+                    position: m.transform_point3(Vec3::ZERO),
+                    axis: m.transform_vector3(Vec3::Z).normalize(),
+                    intensity,
+                    cos_cutoff: cutoff.cos(),
+                    cos_beam: beam.cos(),
+                    cutoff,
+                    beam,
+                }
+            }
             "area" => return Err(self.err(pos, "an 'area' emitter must be nested inside a <shape>")),
-            _ => return Err(self.unsupported_plugin(i, &["point", "constant", "area (inside a shape)"])),
+            _ => {
+                return Err(self.unsupported_plugin(
+                    i,
+                    &["point", "spot", "directional", "constant", "envmap", "area (inside a shape)"],
+                ))
+            }
         };
         self.lights.push(light);
         Ok(())
     }
+}
+
+/// Indices of refraction of common media (at about 589 nm), under Mitsuba's names.
+const IORS: &[(&str, f32)] = &[
+    ("vacuum", 1.0),
+    ("air", 1.000277),
+    ("water", 1.3330),
+    ("water ice", 1.31),
+    ("fused quartz", 1.458),
+    ("pyrex", 1.470),
+    ("acrylic glass", 1.49),
+    ("polypropylene", 1.49),
+    ("bk7", 1.5046),
+    ("amber", 1.55),
+    ("diamond", 2.419),
+];
+const IOR_NAMES: &[&str] = &[
+    "vacuum",
+    "air",
+    "water",
+    "water ice",
+    "fused quartz",
+    "pyrex",
+    "acrylic glass",
+    "polypropylene",
+    "bk7",
+    "amber",
+    "diamond",
+];
+
+fn named_ior(name: &str) -> Option<f32> {
+    IORS.iter().find(|(n, _)| *n == name).map(|(_, v)| *v)
 }

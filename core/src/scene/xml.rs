@@ -267,6 +267,11 @@ impl Doc {
         Some(c.obj)
     }
 
+    /// Whether `i` has a nested object passed as parameter `name` (does not mark it used).
+    pub fn named_child_exists(&self, i: usize, name: &str) -> bool {
+        self.objs[i].children.iter().any(|c| c.name.as_deref() == Some(name))
+    }
+
     /// Resolves an asset path relative to the scene's folder; refuses paths that leave it.
     pub fn resolve_path(&self, pos: Pos, rel: &str) -> Result<PathBuf, SceneError> {
         let joined = self.dir.join(rel);
