@@ -310,3 +310,9 @@ fn rough_glass_sphere_in_a_white_furnace_loses_only_single_scattering_energy() {
         assert!(img.data.iter().all(|p| p.is_finite() && p.min_element() >= 0.0));
     }
 }
+
+#[test]
+fn checkerboard_matches_mitsuba_reference() {
+    // Mitsuba 3.9.1 scalar_rgb, 64 spp, seeds 0..2: relMSE 0.00191, 0.00183, 0.00184.
+    check_reference("checker.xml", "checker.exr", 0.00186);
+}

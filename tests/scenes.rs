@@ -172,3 +172,18 @@ fn shapes_with_emitters_default_to_black() {
     let light = s.shapes.iter().find(|sh| sh.light.is_some()).unwrap();
     assert!(s.bsdfs[light.bsdf as usize].is_black());
 }
+
+#[test]
+fn lookat_without_up_follows_mitsuba() {
+    // Mitsuba takes the first tangent of the Duff et al. basis around the view direction.
+    let s = load_str(
+        r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
+        <transform name="to_world"><lookat origin="0, 3, 4" target="0, 0, 0"/></transform></sensor></scene>"#,
+    )
+    .unwrap();
+    let dir = Vec3::new(0.0, -3.0, -4.0).normalize();
+    let up = furnace_core::math::Frame::from_normal(dir).s;
+    let m = s.camera.to_world;
+    assert!((m.z_axis.truncate() - dir).length() < 1e-6);
+    assert!((m.x_axis.truncate() - up.cross(dir).normalize()).length() < 1e-6);
+}

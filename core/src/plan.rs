@@ -24,7 +24,7 @@ pub struct RenderPlan {
     /// Next-event estimation: some light can be sampled and some BSDF is not purely specular.
     pub light_sampling: bool,
     /// MIS (power heuristic) between BSDF and light sampling: light sampling of lights that
-    /// BSDF-sampled rays can also hit (area and infinite lights).
+    /// BSDF-sampled rays can also hit (area, constant and envmap lights).
     pub mis: bool,
     /// Rays that leave the scene look up lights at infinity.
     pub escaped_rays_lookup: bool,
@@ -55,7 +55,10 @@ impl RenderPlan {
         let any_smooth = scene.bsdfs.iter().any(Bsdf::is_smooth);
         let light_sampling = !scene.lights.is_empty() && any_smooth;
         let mis = light_sampling
-            && scene.lights.iter().any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant));
+            && scene
+                .lights
+                .iter()
+                .any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant | LightKind::Envmap));
         let mut bsdfs: Vec<&'static str> = Vec::new();
         for b in &scene.bsdfs {
             collect_bsdf_names(b, &mut bsdfs);
@@ -149,6 +152,9 @@ impl fmt::Display for RenderPlan {
         }
         if self.escaped_rays_lookup {
             writeln!(f, "  - escaped rays: infinite lights")?;
+        }
+        if self.has_light(LightKind::Envmap) {
+            writeln!(f, "  - environment importance sampling (luminance x solid angle per texel)")?;
         }
         writeln!(f, "  - Russian roulette from depth {}", self.rr_depth)
     }

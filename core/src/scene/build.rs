@@ -17,7 +17,7 @@ use crate::geometry::{Accel, Disk, Geometry, Mesh, Shape, Sphere};
 use crate::light::{EnvMap, Light};
 use crate::math::Rgb;
 use crate::plan::RenderPlan;
-use crate::texture::{Bitmap, BitmapTexture, FilterType, Texture, WrapMode};
+use crate::texture::{to_uv_rows, Bitmap, BitmapTexture, Checkerboard, FilterType, Texture, WrapMode};
 
 type R<T> = Result<T, SceneError>;
 
@@ -361,8 +361,7 @@ impl Builder<'_> {
                         )
                     })?,
                 };
-                let m = doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY);
-                let to_uv = [[m.x_axis.x, m.y_axis.x, m.w_axis.x], [m.x_axis.y, m.y_axis.y, m.w_axis.y]];
+                let to_uv = to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY));
                 let key = (path.clone(), raw);
                 let bitmap = match self.bitmaps.get(&key) {
                     Some(b) => b.clone(),
@@ -377,7 +376,12 @@ impl Builder<'_> {
                 };
                 Texture::Bitmap(Arc::new(BitmapTexture { bitmap, filter, wrap, to_uv }))
             }
-            _ => return Err(self.unsupported_plugin(i, &["bitmap"])),
+            "checkerboard" => Texture::Checkerboard(Arc::new(Checkerboard {
+                color0: self.const_color(i, "color0", Rgb::splat(0.4))?,
+                color1: self.const_color(i, "color1", Rgb::splat(0.2))?,
+                to_uv: to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY)),
+            })),
+            _ => return Err(self.unsupported_plugin(i, &["bitmap", "checkerboard"])),
         };
         self.textures.insert(i, tex.clone());
         Ok(tex)

@@ -600,10 +600,15 @@ impl Parser<'_, '_> {
                     };
                     let origin = p("origin")?;
                     let target = p("target")?;
-                    let up = if c.attribute("up").is_some() { p("up")? } else { Vec3::Y };
                     let dir = (target - origin).normalize_or_zero();
                     if dir == Vec3::ZERO {
                         return Err(self.err(c, "<lookat> origin and target coincide"));
+                    }
+                    // Without `up` (or with a zero one), Mitsuba takes the first tangent of the
+                    // Duff et al. orthonormal basis around the viewing direction.
+                    let mut up = if c.attribute("up").is_some() { p("up")? } else { Vec3::ZERO };
+                    if up.length_squared() == 0.0 {
+                        up = crate::math::Frame::from_normal(dir).s;
                     }
                     let left = up.cross(dir);
                     if left.length_squared() < 1e-12 {

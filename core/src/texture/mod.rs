@@ -1,4 +1,4 @@
-//! Textures: constants and Mitsuba's `bitmap` (PNG, JPEG, EXR, HDR).
+//! Textures: constants, Mitsuba's `bitmap` (PNG, JPEG, EXR, HDR) and `checkerboard`.
 //!
 //! Bitmaps follow Mitsuba: uv (0, 0) is the top-left texel (row 0), texel centres sit at
 //! ((i + 0.5) / W, (j + 0.5) / H), 8-bit and 16-bit data are decoded from sRGB to linear per texel
@@ -18,6 +18,16 @@ pub use bitmap::{Bitmap, BitmapError, FilterType, WrapMode};
 pub enum Texture {
     Const(Rgb),
     Bitmap(Arc<BitmapTexture>),
+    Checkerboard(Arc<Checkerboard>),
+}
+
+/// Mitsuba's `checkerboard`: `color0` where the fractional parts of u and v lie on the same
+/// side of 1/2, `color1` elsewhere, after `to_uv`.
+#[derive(Debug)]
+pub struct Checkerboard {
+    pub color0: Rgb,
+    pub color1: Rgb,
+    pub to_uv: [[f32; 3]; 2],
 }
 
 /// A bitmap with its lookup settings.
@@ -35,12 +45,16 @@ impl Texture {
     pub fn eval(&self, uv: Vec2) -> Rgb {
         match self {
             Texture::Const(c) => *c,
+            Texture::Checkerboard(c) => {
+                let uv = apply(&c.to_uv, uv);
+                if (uv.x - uv.x.floor() > 0.5) == (uv.y - uv.y.floor() > 0.5) {
+                    c.color0
+                } else {
+                    c.color1
+                }
+            }
             Texture::Bitmap(b) => {
-                let m = &b.to_uv;
-                let uv = Vec2::new(
-                    m[0][0] * uv.x + m[0][1] * uv.y + m[0][2],
-                    m[1][0] * uv.x + m[1][1] * uv.y + m[1][2],
-                );
+                let uv = apply(&b.to_uv, uv);
                 match b.filter {
                     FilterType::Nearest => b.bitmap.nearest(uv, b.wrap),
                     FilterType::Bilinear => b.bitmap.bilinear(uv, b.wrap),
@@ -63,6 +77,18 @@ impl Texture {
         match self {
             Texture::Const(c) => *c,
             Texture::Bitmap(b) => b.bitmap.mean(),
+            Texture::Checkerboard(c) => (c.color0 + c.color1) * 0.5,
         }
     }
+}
+
+/// Applies a 2x3 affine uv map (rows of Mitsuba's `to_uv`).
+#[inline]
+fn apply(m: &[[f32; 3]; 2], uv: Vec2) -> Vec2 {
+    Vec2::new(m[0][0] * uv.x + m[0][1] * uv.y + m[0][2], m[1][0] * uv.x + m[1][1] * uv.y + m[1][2])
+}
+
+/// The 2x3 affine part of a `to_uv` transform.
+pub fn to_uv_rows(m: &glam::Mat4) -> [[f32; 3]; 2] {
+    [[m.x_axis.x, m.y_axis.x, m.w_axis.x], [m.x_axis.y, m.y_axis.y, m.w_axis.y]]
 }
