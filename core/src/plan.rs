@@ -32,6 +32,9 @@ pub struct RenderPlan {
     pub bsdfs: Vec<&'static str>,
     /// One line per texture lookup kind in use.
     pub textures: Vec<String>,
+    /// Camera rays carry differentials and first hits compute texture footprints (some
+    /// texture is `trilinear` or `ewa`).
+    pub footprints: bool,
     pub filter: String,
     pub max_depth: u32,
     pub rr_depth: u32,
@@ -64,22 +67,35 @@ impl RenderPlan {
             collect_bsdf_names(b, &mut bsdfs);
         }
         let mut textures = Vec::new();
-        for b in &scene.bsdfs {
-            for t in b.textures() {
-                if let Texture::Bitmap(bt) = t {
-                    let f = match bt.filter {
-                        FilterType::Nearest => "nearest",
-                        FilterType::Bilinear => "bilinear",
-                    };
-                    let line =
-                        format!("bitmap {}x{} {f} lookup, no footprint", bt.bitmap.width, bt.bitmap.height);
-                    if !textures.contains(&line) {
-                        textures.push(line);
+        let emitter_textures = scene.lights.iter().filter_map(|l| match l {
+            crate::light::Light::Area { radiance, .. } => Some(radiance),
+            _ => None,
+        });
+        for t in scene.bsdfs.iter().flat_map(|b| b.textures()).chain(emitter_textures) {
+            let line = match t {
+                Texture::Bitmap(bt) => {
+                    let (w, h) = (bt.bitmap.width, bt.bitmap.height);
+                    match bt.filter {
+                        FilterType::Nearest => format!("bitmap {w}x{h} nearest lookup, no footprint"),
+                        FilterType::Bilinear => format!("bitmap {w}x{h} bilinear lookup, no footprint"),
+                        FilterType::Trilinear => {
+                            format!("bitmap {w}x{h} mip-mapped trilinear, footprint from ray differentials")
+                        }
+                        FilterType::Ewa => {
+                            format!("bitmap {w}x{h} mip-mapped EWA, footprint from ray differentials")
+                        }
                     }
                 }
+                Texture::Checkerboard(_) => "checkerboard".to_string(),
+                Texture::Const(_) => continue,
+            };
+            if !textures.contains(&line) {
+                textures.push(line);
             }
         }
+        let footprints = scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| t.wants_footprint());
         RenderPlan {
+            footprints,
             camera,
             lights,
             light_sampling,

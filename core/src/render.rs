@@ -7,10 +7,14 @@ use glam::Vec2;
 use rayon::prelude::*;
 
 use crate::film::{Accum, Filter};
+use crate::geometry::RayDifferentials;
 use crate::integrator::{path, Stats};
 use crate::plan::CameraModel;
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
+
+/// Offset of the ray differentials, in pixels.
+pub const FOOTPRINT_PIXELS: f32 = 0.25;
 
 /// Pixels `[x0, x1) x [y0, y1)` of the output (cropped) image, samples `[s0, s1)` of each.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
@@ -78,15 +82,25 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                 let mut s = SampleStream::new(seed, fx_px, fy_px, i);
                 let [fx, fy, lx, ly] = s.next_4d();
                 let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
-                let ray = match scene.plan.camera {
+                let lens_u = Vec2::new(lx, ly);
+                let camera_ray = |pos: Vec2| match scene.plan.camera {
                     CameraModel::Pinhole => cam.ray_pinhole(pos),
                     CameraModel::ThinLens { aperture_radius, focus_distance } => {
-                        st.lens_samples += 1;
                         let lens = crate::camera::ThinLens { aperture_radius, focus_distance };
-                        cam.ray_thin_lens(&lens, pos, Vec2::new(lx, ly))
+                        cam.ray_thin_lens(&lens, pos, lens_u)
                     }
                 };
-                let l = path::li(scene, ray, &mut s, &mut st);
+                if matches!(scene.plan.camera, CameraModel::ThinLens { .. }) {
+                    st.lens_samples += 1;
+                }
+                let ray = camera_ray(pos);
+                // Differentials to a neighbour FOOTPRINT_PIXELS away: the pixel filter already
+                // averages many samples, so a full pixel would blur twice.
+                let diff = scene.plan.footprints.then(|| RayDifferentials {
+                    rx: camera_ray(pos + Vec2::new(FOOTPRINT_PIXELS, 0.0)),
+                    ry: camera_ray(pos + Vec2::new(0.0, FOOTPRINT_PIXELS)),
+                });
+                let l = path::li(scene, ray, diff.as_ref(), &mut s, &mut st);
                 st.samples += 1;
                 if !crate::film::is_valid_sample(l) {
                     st.dropped += 1;

@@ -6,7 +6,7 @@ use glam::{Vec2, Vec3};
 use super::microfacet::{fresnel_conductor, reflect, Distribution, Microfacet};
 use super::BsdfSample;
 use crate::math::Rgb;
-use crate::texture::Texture;
+use crate::texture::{TexCoord, Texture};
 
 /// Roughness of a microfacet BSDF; `alpha_u`/`alpha_v` are float textures (red channel).
 #[derive(Clone, Debug)]
@@ -18,7 +18,7 @@ pub struct Roughness {
 
 impl Roughness {
     #[inline]
-    pub fn at(&self, uv: Vec2) -> Microfacet {
+    pub fn at(&self, uv: TexCoord) -> Microfacet {
         Microfacet::new(self.dist, self.alpha_u.eval(uv).x, self.alpha_v.eval(uv).x)
     }
 }
@@ -34,7 +34,7 @@ pub struct Conductor {
 
 impl Conductor {
     #[inline]
-    pub fn eval(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> Rgb {
+    pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
         let Some(r) = &self.rough else { return Rgb::ZERO };
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return Rgb::ZERO;
@@ -47,7 +47,7 @@ impl Conductor {
     }
 
     #[inline]
-    pub fn pdf(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> f32 {
+    pub fn pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
         let Some(r) = &self.rough else { return 0.0 };
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return 0.0;
@@ -57,7 +57,7 @@ impl Conductor {
     }
 
     #[inline]
-    pub fn sample(&self, uv: Vec2, wo: Vec3, u: Vec2) -> Option<BsdfSample> {
+    pub fn sample(&self, uv: TexCoord, wo: Vec3, u: Vec2) -> Option<BsdfSample> {
         if wo.z <= 0.0 {
             return None;
         }

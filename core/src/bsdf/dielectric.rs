@@ -14,7 +14,7 @@ use super::conductor::Roughness;
 use super::microfacet::{fresnel_dielectric, reflect, refract};
 use super::BsdfSample;
 use crate::math::Rgb;
-use crate::texture::Texture;
+use crate::texture::{TexCoord, Texture};
 
 #[derive(Clone, Debug)]
 pub struct Dielectric {
@@ -63,7 +63,7 @@ impl Dielectric {
         Some((m, reflect))
     }
 
-    pub fn eval(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> Rgb {
+    pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
         let Some(r) = &self.rough else { return Rgb::ZERO };
         if wo.z == 0.0 {
             return Rgb::ZERO;
@@ -84,7 +84,7 @@ impl Dielectric {
         }
     }
 
-    pub fn pdf(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> f32 {
+    pub fn pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
         let Some(r) = &self.rough else { return 0.0 };
         if wo.z == 0.0 {
             return 0.0;
@@ -102,7 +102,7 @@ impl Dielectric {
         }
     }
 
-    pub fn sample(&self, uv: Vec2, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+    pub fn sample(&self, uv: TexCoord, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
         if wo.z == 0.0 {
             return None;
         }

@@ -4,10 +4,10 @@ use glam::{Vec2, Vec3};
 
 use super::BsdfSample;
 use crate::math::{square_to_cosine_hemisphere, Rgb, INV_PI};
-use crate::texture::Texture;
+use crate::texture::{TexCoord, Texture};
 
 #[inline]
-pub fn eval(r: &Texture, uv: Vec2, wo: Vec3, wi: Vec3) -> Rgb {
+pub fn eval(r: &Texture, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
     if wo.z <= 0.0 || wi.z <= 0.0 {
         return Rgb::ZERO;
     }
@@ -24,7 +24,7 @@ pub fn pdf(wo: Vec3, wi: Vec3) -> f32 {
 }
 
 #[inline]
-pub fn sample(r: &Texture, uv: Vec2, wo: Vec3, u: Vec2) -> Option<BsdfSample> {
+pub fn sample(r: &Texture, uv: TexCoord, wo: Vec3, u: Vec2) -> Option<BsdfSample> {
     if wo.z <= 0.0 {
         return None;
     }

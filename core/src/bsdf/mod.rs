@@ -14,7 +14,7 @@ mod tests;
 use glam::{Vec2, Vec3};
 
 use crate::math::Rgb;
-use crate::texture::Texture;
+use crate::texture::{TexCoord, Texture};
 
 pub use conductor::{Conductor, Roughness};
 pub use dielectric::Dielectric;
@@ -106,7 +106,7 @@ impl Bsdf {
     }
 
     #[inline]
-    pub fn eval(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> Rgb {
+    pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
         match self {
             Bsdf::Diffuse { reflectance } => diffuse::eval(reflectance, uv, wo, wi),
             Bsdf::TwoSided { front, back } => {
@@ -123,7 +123,7 @@ impl Bsdf {
     }
 
     #[inline]
-    pub fn pdf(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> f32 {
+    pub fn pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
         match self {
             Bsdf::Diffuse { .. } => diffuse::pdf(wo, wi),
             Bsdf::TwoSided { front, back } => {
@@ -141,7 +141,7 @@ impl Bsdf {
 
     /// Samples `wi` given `wo`; `u1` picks a lobe, `u2` the direction within it.
     #[inline]
-    pub fn sample(&self, uv: Vec2, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+    pub fn sample(&self, uv: TexCoord, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
         match self {
             Bsdf::Diffuse { reflectance } => diffuse::sample(reflectance, uv, wo, u2),
             Bsdf::TwoSided { front, back } => {

@@ -9,7 +9,7 @@ use glam::{Vec2, Vec3};
 use super::microfacet::fresnel_dielectric;
 use super::BsdfSample;
 use crate::math::{square_to_cosine_hemisphere, Rgb, INV_PI};
-use crate::texture::Texture;
+use crate::texture::{TexCoord, Texture};
 
 #[derive(Clone, Debug)]
 pub struct Plastic {
@@ -36,14 +36,14 @@ impl Plastic {
     }
 
     #[inline]
-    fn diffuse_value(&self, uv: Vec2, wi: Vec3, f_o: f32) -> Rgb {
+    fn diffuse_value(&self, uv: TexCoord, wi: Vec3, f_o: f32) -> Rgb {
         let (f_i, _) = fresnel_dielectric(wi.z, self.eta);
         let d = self.diffuse_reflectance.eval(uv);
         let r = if self.nonlinear { d / (Rgb::ONE - d * self.fdr_int) } else { d / (1.0 - self.fdr_int) };
         r * ((1.0 - f_o) * (1.0 - f_i) * INV_PI * wi.z / (self.eta * self.eta))
     }
 
-    pub fn eval(&self, uv: Vec2, wo: Vec3, wi: Vec3) -> Rgb {
+    pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return Rgb::ZERO;
         }
@@ -51,7 +51,7 @@ impl Plastic {
         self.diffuse_value(uv, wi, f_o)
     }
 
-    pub fn pdf(&self, _uv: Vec2, wo: Vec3, wi: Vec3) -> f32 {
+    pub fn pdf(&self, _uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return 0.0;
         }
@@ -59,7 +59,7 @@ impl Plastic {
         (1.0 - p_spec) * wi.z * INV_PI
     }
 
-    pub fn sample(&self, uv: Vec2, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+    pub fn sample(&self, uv: TexCoord, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
         if wo.z <= 0.0 {
             return None;
         }

@@ -7,6 +7,7 @@ use super::microfacet::{fresnel_dielectric, fresnel_diffuse_reflectance, refract
 use super::*;
 use crate::math::Rgb;
 use crate::testing::{chi2_test, sidak_alpha, Grid, Pcg};
+use crate::texture::TexCoord;
 
 fn c(v: f32) -> Texture {
     Texture::Const(Rgb::splat(v))
@@ -129,7 +130,7 @@ fn cases() -> Vec<Case> {
 fn sampled_directions_follow_the_pdf_and_weights_equal_eval_over_pdf() {
     let cases = cases();
     let alpha = sidak_alpha(cases.len());
-    let uv = Vec2::ZERO;
+    let uv = TexCoord::default();
     let mut failures = Vec::new();
     for (i, case) in cases.iter().enumerate() {
         let b = &case.bsdf;
@@ -209,10 +210,10 @@ fn degenerate_inputs_stay_finite_and_non_negative() {
         for &wo in &wos {
             for _ in 0..2000 {
                 let wi = crate::math::square_to_uniform_sphere(rng.next_2d());
-                let (e, p) = (b.eval(Vec2::ZERO, wo, wi), b.pdf(Vec2::ZERO, wo, wi));
+                let (e, p) = (b.eval(TexCoord::default(), wo, wi), b.pdf(TexCoord::default(), wo, wi));
                 assert!(e.is_finite() && e.min_element() >= 0.0, "{} wo {wo} wi {wi}: eval {e}", b.name());
                 assert!(p.is_finite() && p >= 0.0, "{} wo {wo} wi {wi}: pdf {p}", b.name());
-                if let Some(s) = b.sample(Vec2::ZERO, wo, rng.next_f32(), rng.next_2d()) {
+                if let Some(s) = b.sample(TexCoord::default(), wo, rng.next_f32(), rng.next_2d()) {
                     assert!(
                         s.weight.is_finite() && s.weight.min_element() >= 0.0,
                         "{} wo {wo}: {s:?}",
@@ -242,7 +243,7 @@ fn total_internal_reflection_reflects_everything() {
     let wo = wo_at(0.3);
     let mut rng = Pcg::new(2);
     for _ in 0..100 {
-        let s = b.sample(Vec2::ZERO, wo, rng.next_f32(), rng.next_2d()).unwrap();
+        let s = b.sample(TexCoord::default(), wo, rng.next_f32(), rng.next_2d()).unwrap();
         assert!(s.wi.z > 0.0 && s.delta && (s.weight - Rgb::ONE).abs().max_element() < 1e-6);
     }
 }
@@ -260,8 +261,8 @@ fn smooth_dielectric_conserves_energy() {
     });
     for cos in [1.0f32, 0.7, 0.2, 1e-3] {
         let wo = wo_at(cos);
-        let r = b.sample(Vec2::ZERO, wo, 0.0, Vec2::ZERO).unwrap();
-        let t = b.sample(Vec2::ZERO, wo, 1.0 - 1e-7, Vec2::ZERO).unwrap();
+        let r = b.sample(TexCoord::default(), wo, 0.0, Vec2::ZERO).unwrap();
+        let t = b.sample(TexCoord::default(), wo, 1.0 - 1e-7, Vec2::ZERO).unwrap();
         let total = r.pdf * r.weight.x + t.pdf * t.weight.x * 1.5 * 1.5;
         assert!((total - 1.0).abs() < 1e-5, "cos {cos}: {total}");
     }

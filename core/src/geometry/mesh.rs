@@ -37,10 +37,10 @@ impl Mesh {
         [self.positions[a as usize], self.positions[b as usize], self.positions[c as usize]]
     }
 
-    /// Point, error bound, geometric normal, shading normal, uv and dp/du at barycentrics
+    /// Point, error bound, geometric normal, shading normal, uv, dp/du and dp/dv at barycentrics
     /// (b1, b2) of triangle `i`. Without texture coordinates uv = (b1, b2), as in Mitsuba.
     #[inline]
-    pub fn surface(&self, i: usize, b1: f32, b2: f32) -> (Vec3, Vec3, Vec3, Vec3, Vec2, Vec3) {
+    pub fn surface(&self, i: usize, b1: f32, b2: f32) -> (Vec3, Vec3, Vec3, Vec3, Vec2, Vec3, Vec3) {
         let [ia, ib, ic] = self.tris[i].map(|k| k as usize);
         let (p0, p1, p2) = (self.positions[ia], self.positions[ib], self.positions[ic]);
         let b0 = 1.0 - b1 - b2;
@@ -49,15 +49,18 @@ impl Mesh {
         let e1 = p1 - p0;
         let e2 = p2 - p0;
         let mut ng = e1.cross(e2).normalize_or_zero();
-        let (uv, dpdu) = if self.uvs.is_empty() {
-            (Vec2::new(b1, b2), e1)
+        let (uv, dpdu, dpdv) = if self.uvs.is_empty() {
+            (Vec2::new(b1, b2), e1, e2)
         } else {
             let (t0, t1, t2) = (self.uvs[ia], self.uvs[ib], self.uvs[ic]);
             let uv = t0 * b0 + t1 * b1 + t2 * b2;
             let (d1, d2) = (t1 - t0, t2 - t0);
             let det = d1.x * d2.y - d1.y * d2.x;
-            let dpdu = if det.abs() > 1e-12 { (e1 * d2.y - e2 * d1.y) / det } else { e1 };
-            (uv, dpdu)
+            if det.abs() > 1e-12 {
+                (uv, (e1 * d2.y - e2 * d1.y) / det, (e2 * d1.x - e1 * d2.x) / det)
+            } else {
+                (uv, e1, e2)
+            }
         };
         let ns = if self.normals.is_empty() {
             ng
@@ -74,7 +77,7 @@ impl Mesh {
                 n
             }
         };
-        (p, p_err, ng, ns, uv, dpdu)
+        (p, p_err, ng, ns, uv, dpdu, dpdv)
     }
 
     /// Applies `to_world` to positions and (by the inverse transpose) to normals.
@@ -245,13 +248,13 @@ mod tests {
     fn cube_faces_point_outward() {
         let m = Mesh::cube();
         for i in 0..m.tris.len() {
-            let (p, _, ng, ns, _, _) = m.surface(i, 1.0 / 3.0, 1.0 / 3.0);
+            let (p, _, ng, ns, _, _, _) = m.surface(i, 1.0 / 3.0, 1.0 / 3.0);
             assert!(ng.dot(p) > 0.0 && (ng - ns).length() < 1e-6, "face {i}");
         }
         let mut mirrored = Mesh::cube();
         mirrored.transform_flat(&Mat4::from_scale(Vec3::new(-1.0, 2.0, 1.0)));
         for i in 0..mirrored.tris.len() {
-            let (p, _, ng, _, _, _) = mirrored.surface(i, 1.0 / 3.0, 1.0 / 3.0);
+            let (p, _, ng, _, _, _, _) = mirrored.surface(i, 1.0 / 3.0, 1.0 / 3.0);
             assert!(ng.dot(p) > 0.0, "mirrored face {i} points inward");
         }
     }
@@ -259,7 +262,7 @@ mod tests {
     #[test]
     fn rectangle_faces_plus_z() {
         let m = Mesh::rectangle();
-        let (_, _, ng, _, uv, _) = m.surface(0, 0.0, 0.0);
+        let (_, _, ng, _, uv, _, _) = m.surface(0, 0.0, 0.0);
         assert!((ng - Vec3::Z).length() < 1e-6);
         assert_eq!(uv, Vec2::new(0.0, 0.0));
     }

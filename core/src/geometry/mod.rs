@@ -44,11 +44,53 @@ pub struct Interaction {
     /// Shading frame; `frame.n` is the shading normal.
     pub frame: Frame,
     pub uv: Vec2,
+    /// Surface derivatives with respect to uv (for texture footprints).
+    pub dpdu: Vec3,
+    pub dpdv: Vec3,
     pub shape: u32,
     pub prim: u32,
 }
 
+/// Offsets of the rays through the neighbouring pixel in x and in y (ray differentials).
+#[derive(Clone, Copy, Debug)]
+pub struct RayDifferentials {
+    pub rx: Ray,
+    pub ry: Ray,
+}
+
 impl Interaction {
+    /// The texture footprint at this hit of a ray with differentials `d`: where the offset rays
+    /// meet the tangent plane gives dp/dx and dp/dy, and least squares against dp/du and dp/dv
+    /// gives the uv derivatives (pbrt 3rd ed., section 10.1.1).
+    pub fn tex_coord(&self, d: &RayDifferentials) -> crate::texture::TexCoord {
+        let n = self.ng;
+        let on_plane = |r: &Ray| -> Option<Vec3> {
+            let denom = n.dot(r.d);
+            if denom.abs() < 1e-12 {
+                return None;
+            }
+            let t = n.dot(self.p - r.o) / denom;
+            t.is_finite().then(|| r.o + r.d * t - self.p)
+        };
+        let (Some(dpdx), Some(dpdy)) = (on_plane(&d.rx), on_plane(&d.ry)) else {
+            return self.uv.into();
+        };
+        let (a, b, c) = (self.dpdu.dot(self.dpdu), self.dpdu.dot(self.dpdv), self.dpdv.dot(self.dpdv));
+        let det = a * c - b * b;
+        if !(det.abs() > 1e-20) {
+            return self.uv.into();
+        }
+        let solve = |dp: Vec3| {
+            let (pu, pv) = (self.dpdu.dot(dp), self.dpdv.dot(dp));
+            Vec2::new((c * pu - b * pv) / det, (a * pv - b * pu) / det)
+        };
+        let (dx, dy) = (solve(dpdx), solve(dpdy));
+        if !(dx.is_finite() && dy.is_finite()) {
+            return self.uv.into();
+        }
+        crate::texture::TexCoord { uv: self.uv, dx, dy }
+    }
+
     /// A ray leaving the surface in direction `d` that cannot re-hit the surface it starts on.
     pub fn spawn_ray(&self, d: Vec3) -> Ray {
         Ray::new(offset_ray_origin(self.p, self.p_err, self.ng, d), d)

@@ -155,7 +155,7 @@ impl Shape {
 
     /// Full surface information for a hit found by [`Shape::intersect`].
     pub fn interaction(&self, shape: u32, prim: usize, ray: &Ray, t: f32, aux: Vec2) -> Interaction {
-        let (p, p_err, mut ng, mut ns, uv, dpdu) = match &self.geometry {
+        let (p, p_err, mut ng, mut ns, uv, dpdu, dpdv) = match &self.geometry {
             Geometry::Mesh(m) => m.surface(prim, aux.x, aux.y),
             Geometry::Sphere(s) => {
                 let n = (ray.at(t) - s.center).normalize();
@@ -164,18 +164,19 @@ impl Shape {
                 let l = s.rot * n;
                 let uv = s.uv(n);
                 let dpdu = s.rot.transpose() * Vec3::new(-l.y, l.x, 0.0) * (2.0 * PI * s.radius);
-                (p, p_err, n, n, uv, dpdu)
+                // v = theta / pi: dp/dv = pi r (cos theta cos phi, cos theta sin phi, -sin theta).
+                let rxy = (l.x * l.x + l.y * l.y).sqrt();
+                let (cp, sp) = if rxy > 0.0 { (l.x / rxy, l.y / rxy) } else { (1.0, 0.0) };
+                let dpdv = s.rot.transpose() * Vec3::new(l.z * cp, l.z * sp, -rxy) * (PI * s.radius);
+                (p, p_err, n, n, uv, dpdu, dpdv)
             }
             Geometry::Disk(d) => {
                 let (p, p_err) = d.point(aux.x, aux.y);
-                let r = aux.length();
-                let mut phi = aux.y.atan2(aux.x);
-                if phi < 0.0 {
-                    phi += 2.0 * PI;
-                }
-                let (s, c) = phi.sin_cos();
+                let uv = Disk::uv(aux);
+                let (s, c) = (uv.y * 2.0 * PI).sin_cos();
                 let dpdu = d.to_world.transform_vector3(Vec3::new(c, s, 0.0));
-                (p, p_err, d.normal, d.normal, Vec2::new(r, phi / (2.0 * PI)), dpdu)
+                let dpdv = d.to_world.transform_vector3(Vec3::new(-aux.y, aux.x, 0.0) * (2.0 * PI));
+                (p, p_err, d.normal, d.normal, uv, dpdu, dpdv)
             }
         };
         if self.flip_normals {
@@ -189,6 +190,8 @@ impl Shape {
             ng,
             frame: Frame::from_normal_tangent(ns, dpdu),
             uv,
+            dpdu,
+            dpdv,
             shape,
             prim: prim as u32,
         }
@@ -212,7 +215,7 @@ impl Shape {
             Geometry::Mesh(m) => {
                 let b = crate::math::square_to_uniform_triangle(u);
                 // Emission and its cosine follow the shading normal, as for hits.
-                let (p, p_err, _ng, ns, uv, _) = m.surface(prim, b.x, b.y);
+                let (p, p_err, _ng, ns, uv, _, _) = m.surface(prim, b.x, b.y);
                 (p, p_err, ns, uv)
             }
             Geometry::Sphere(s) => {

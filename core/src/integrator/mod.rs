@@ -22,6 +22,8 @@ pub struct Stats {
     pub bsdf_samples: u64,
     /// Escaped rays that looked up lights at infinity.
     pub escaped_lookups: u64,
+    /// Texture footprints computed from ray differentials.
+    pub footprints: u64,
     /// Samples whose radiance was NaN, infinite or above [`crate::film::MAX_RADIANCE`]:
     /// dropped, never splatted.
     pub dropped: u64,
@@ -38,6 +40,7 @@ impl Stats {
         }
         self.bsdf_samples += o.bsdf_samples;
         self.escaped_lookups += o.escaped_lookups;
+        self.footprints += o.footprints;
         self.dropped += o.dropped;
     }
 

@@ -8,13 +8,20 @@
 use glam::Vec2;
 
 use super::Stats;
-use crate::geometry::Ray;
+use crate::geometry::{Ray, RayDifferentials};
 use crate::math::{mis_power, Rgb};
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
 
-/// Radiance arriving along `ray`.
-pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> Rgb {
+/// Radiance arriving along `ray`. `diff`: the camera ray's differentials, when the plan asks
+/// for texture footprints (used at the first hit).
+pub fn li(
+    scene: &Scene,
+    mut ray: Ray,
+    diff: Option<&RayDifferentials>,
+    s: &mut SampleStream,
+    st: &mut Stats,
+) -> Rgb {
     let plan = &scene.plan;
     let settings = &scene.integrator;
     if settings.max_depth == 0 {
@@ -76,6 +83,13 @@ pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> 
             break;
         }
         let wo = it.frame.to_local(wo_world);
+        let tc = match diff {
+            Some(d) if depth == 0 => {
+                st.footprints += 1;
+                it.tex_coord(d)
+            }
+            _ => it.uv.into(),
+        };
         let [lu, lv, bu, bv] = s.next_4d();
         let [lsel, bsel, rr, _] = s.next_4d();
 
@@ -89,7 +103,7 @@ pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> 
             if let Some(ls) = light.sample(&scene.shapes, &it, u_prim, Vec2::new(lu, lv)) {
                 if ls.pdf > 0.0 && ls.li != Rgb::ZERO {
                     let wi = it.frame.to_local(ls.wi);
-                    let f = bsdf.eval(it.uv, wo, wi);
+                    let f = bsdf.eval(tc, wo, wi);
                     if f != Rgb::ZERO {
                         let shadow = match ls.target {
                             Some(t) => it.spawn_ray_to(t),
@@ -98,8 +112,7 @@ pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> 
                         st.shadow_rays += 1;
                         if !scene.occluded(&shadow) {
                             let light_pdf = ls.pdf * sel_pdf;
-                            let w =
-                                if ls.delta { 1.0 } else { mis_power(light_pdf, bsdf.pdf(it.uv, wo, wi)) };
+                            let w = if ls.delta { 1.0 } else { mis_power(light_pdf, bsdf.pdf(tc, wo, wi)) };
                             l += beta * f * ls.li * (w / light_pdf);
                         }
                     }
@@ -109,7 +122,7 @@ pub fn li(scene: &Scene, mut ray: Ray, s: &mut SampleStream, st: &mut Stats) -> 
 
         // BSDF sampling.
         st.bsdf_samples += 1;
-        let Some(bs) = bsdf.sample(it.uv, wo, bsel, Vec2::new(bu, bv)) else {
+        let Some(bs) = bsdf.sample(tc, wo, bsel, Vec2::new(bu, bv)) else {
             break;
         };
         let wi_world = it.frame.to_world(bs.wi);

@@ -45,7 +45,7 @@ impl EnvMap {
         let lum: Vec<f32> = bitmap.texels.iter().map(|t| (luminance(*t) * scale).max(0.0)).collect();
         let sample_lum: Vec<f32> = match filter {
             FilterType::Nearest => lum,
-            FilterType::Bilinear => (0..w * h)
+            _ => (0..w * h)
                 .map(|k| {
                     let (i, j) = ((k % w) as i64, (k / w) as i64);
                     let mut m = 0.0f32;
@@ -134,7 +134,7 @@ impl EnvMap {
                 let (i, j) = self.texel_of(d);
                 self.bitmap.texel(i, j)
             }
-            FilterType::Bilinear => {
+            _ => {
                 let uv = self.uv(d);
                 let px = uv.x * w as f32 - 0.5;
                 let py = uv.y * h as f32 - 0.5;

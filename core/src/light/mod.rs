@@ -163,7 +163,7 @@ impl Light {
                     return None; // the sampled point faces away: emits nothing towards `it`
                 }
                 let pdf = dist2 / (cos_l * *area as f32);
-                let li = radiance.eval(sp.uv);
+                let li = radiance.eval(sp.uv.into());
                 Some(LightSample {
                     wi,
                     li,
@@ -262,7 +262,7 @@ impl Light {
     /// Radiance leaving an area light's surface point `hit` towards `wo` (unit, world).
     pub fn le_surface(&self, hit: &Interaction, wo: Vec3) -> Rgb {
         match self {
-            Light::Area { radiance, .. } if hit.frame.n.dot(wo) > 0.0 => radiance.eval(hit.uv),
+            Light::Area { radiance, .. } if hit.frame.n.dot(wo) > 0.0 => radiance.eval(hit.uv.into()),
             _ => Rgb::ZERO,
         }
     }
@@ -320,7 +320,7 @@ fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Optio
     let p_err = (center.abs() + (n * radius).abs()) * crate::math::gamma(6);
     Some(LightSample {
         wi,
-        li: radiance.eval(s.uv(n)),
+        li: radiance.eval(s.uv(n).into()),
         pdf: 1.0 / (2.0 * PI * one_minus_cos_max),
         delta: false,
         target: Some(crate::math::offset_ray_origin(p_on, p_err, n, -wi)),

@@ -17,7 +17,9 @@ use crate::geometry::{Accel, Disk, Geometry, Mesh, Shape, Sphere};
 use crate::light::{EnvMap, Light};
 use crate::math::Rgb;
 use crate::plan::RenderPlan;
-use crate::texture::{to_uv_rows, Bitmap, BitmapTexture, Checkerboard, FilterType, Texture, WrapMode};
+use crate::texture::{
+    to_uv_rows, Bitmap, BitmapTexture, Checkerboard, FilterType, MipMap, Texture, WrapMode,
+};
 
 type R<T> = Result<T, SceneError>;
 
@@ -345,12 +347,14 @@ impl Builder<'_> {
                 let filter = match doc.string(i, "filter_type")?.as_deref() {
                     None | Some("bilinear") => FilterType::Bilinear,
                     Some("nearest") => FilterType::Nearest,
-                    Some(other) => {
-                        return Err(self.err(
-                            doc.pos_of(i, "filter_type"),
-                            format!("unknown filter_type '{other}' (expected bilinear or nearest)"),
-                        ))
-                    }
+                    Some("trilinear") => FilterType::Trilinear,
+                    Some("ewa") => FilterType::Ewa,
+                    Some(other) => return Err(self.err(
+                        doc.pos_of(i, "filter_type"),
+                        format!(
+                            "unknown filter_type '{other}' (expected bilinear, nearest, trilinear or ewa)"
+                        ),
+                    )),
                 };
                 let wrap = match doc.string(i, "wrap_mode")? {
                     None => WrapMode::Repeat,
@@ -374,7 +378,10 @@ impl Builder<'_> {
                         b
                     }
                 };
-                Texture::Bitmap(Arc::new(BitmapTexture { bitmap, filter, wrap, to_uv }))
+                // The pyramid is built only for the filters that read it.
+                let mip =
+                    matches!(filter, FilterType::Trilinear | FilterType::Ewa).then(|| MipMap::build(&bitmap));
+                Texture::Bitmap(Arc::new(BitmapTexture { bitmap, filter, wrap, to_uv, mip }))
             }
             "checkerboard" => Texture::Checkerboard(Arc::new(Checkerboard {
                 color0: self.const_color(i, "color0", Rgb::splat(0.4))?,

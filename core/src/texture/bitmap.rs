@@ -10,6 +10,10 @@ use crate::math::{srgb_to_linear, Rgb};
 pub enum FilterType {
     Nearest,
     Bilinear,
+    /// Furnace's own: mip-mapped, isotropic footprint (Mitsuba has no equivalent).
+    Trilinear,
+    /// Furnace's own: mip-mapped elliptically weighted average (Mitsuba has no equivalent).
+    Ewa,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -5,6 +5,7 @@
 //! before interpolation (unless `raw`), and `to_uv` is an affine 2-D map applied first.
 
 pub mod bitmap;
+pub mod mipmap;
 
 use std::sync::Arc;
 
@@ -13,6 +14,22 @@ use glam::Vec2;
 use crate::math::Rgb;
 
 pub use bitmap::{Bitmap, BitmapError, FilterType, WrapMode};
+pub use mipmap::MipMap;
+
+/// Where a texture is looked up: uv, and its derivatives along the screen's x and y (zero
+/// when no footprint is known: a point lookup).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TexCoord {
+    pub uv: Vec2,
+    pub dx: Vec2,
+    pub dy: Vec2,
+}
+
+impl From<Vec2> for TexCoord {
+    fn from(uv: Vec2) -> TexCoord {
+        TexCoord { uv, dx: Vec2::ZERO, dy: Vec2::ZERO }
+    }
+}
 
 #[derive(Clone, Debug)]
 pub enum Texture {
@@ -38,15 +55,17 @@ pub struct BitmapTexture {
     pub wrap: WrapMode,
     /// Rows of the 2x3 affine `to_uv` map.
     pub to_uv: [[f32; 3]; 2],
+    /// The pyramid, built only for `trilinear` and `ewa`.
+    pub mip: Option<MipMap>,
 }
 
 impl Texture {
     #[inline]
-    pub fn eval(&self, uv: Vec2) -> Rgb {
+    pub fn eval(&self, tc: TexCoord) -> Rgb {
         match self {
             Texture::Const(c) => *c,
             Texture::Checkerboard(c) => {
-                let uv = apply(&c.to_uv, uv);
+                let uv = apply(&c.to_uv, tc.uv);
                 if (uv.x - uv.x.floor() > 0.5) == (uv.y - uv.y.floor() > 0.5) {
                     c.color0
                 } else {
@@ -54,10 +73,16 @@ impl Texture {
                 }
             }
             Texture::Bitmap(b) => {
-                let uv = apply(&b.to_uv, uv);
-                match b.filter {
-                    FilterType::Nearest => b.bitmap.nearest(uv, b.wrap),
-                    FilterType::Bilinear => b.bitmap.bilinear(uv, b.wrap),
+                let uv = apply(&b.to_uv, tc.uv);
+                match (b.filter, &b.mip) {
+                    (FilterType::Nearest, _) => b.bitmap.nearest(uv, b.wrap),
+                    (FilterType::Trilinear, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
+                        m.trilinear(uv, linear(&b.to_uv, tc.dx), linear(&b.to_uv, tc.dy), b.wrap)
+                    }
+                    (FilterType::Ewa, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
+                        m.ewa(uv, linear(&b.to_uv, tc.dx), linear(&b.to_uv, tc.dy), b.wrap)
+                    }
+                    _ => b.bitmap.bilinear(uv, b.wrap),
                 }
             }
         }
@@ -72,6 +97,11 @@ impl Texture {
         matches!(self, Texture::Bitmap(_))
     }
 
+    /// Whether lookups use a footprint (a `trilinear` or `ewa` bitmap).
+    pub fn wants_footprint(&self) -> bool {
+        matches!(self, Texture::Bitmap(b) if b.mip.is_some())
+    }
+
     /// Mean value over the texture's domain (for constants, the constant).
     pub fn mean(&self) -> Rgb {
         match self {
@@ -80,6 +110,12 @@ impl Texture {
             Texture::Checkerboard(c) => (c.color0 + c.color1) * 0.5,
         }
     }
+}
+
+/// The linear part of a 2x3 uv map, for derivatives.
+#[inline]
+fn linear(m: &[[f32; 3]; 2], d: Vec2) -> Vec2 {
+    Vec2::new(m[0][0] * d.x + m[0][1] * d.y, m[1][0] * d.x + m[1][1] * d.y)
 }
 
 /// Applies a 2x3 affine uv map (rows of Mitsuba's `to_uv`).
