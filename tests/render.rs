@@ -375,3 +375,10 @@ fn trilinear_and_ewa_render_the_textured_plane() {
         assert!(c.rel_mse < 1.5 * 0.00259, "{filter}: {c:?}");
     }
 }
+
+#[test]
+fn spot_and_directional_lights_match_mitsuba_reference() {
+    // Spot (cutoff 30, beam 20), directional, rough Beckmann gold from the `Au` preset.
+    // Mitsuba 3.9.1 scalar_rgb, 64 spp, seeds 0..2: relMSE 0.00850, 0.00976, 0.00922.
+    check_reference("lights.xml", "lights.exr", 0.00916);
+}
