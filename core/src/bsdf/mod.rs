@@ -19,7 +19,7 @@ use crate::texture::{TexCoord, Texture};
 pub use conductor::{Conductor, Roughness};
 pub use dielectric::Dielectric;
 pub use microfacet::Distribution;
-pub use plastic::Plastic;
+pub use plastic::{Plastic, RoughCoating};
 
 /// A sampled incident direction.
 #[derive(Clone, Copy, Debug)]
@@ -59,6 +59,7 @@ impl Bsdf {
             Bsdf::Dielectric(d) if d.thin => "thindielectric",
             Bsdf::Dielectric(d) if d.rough.is_some() => "roughdielectric",
             Bsdf::Dielectric(_) => "dielectric",
+            Bsdf::Plastic(p) if p.rough.is_some() => "roughplastic",
             Bsdf::Plastic(_) => "plastic",
         }
     }
@@ -101,7 +102,13 @@ impl Bsdf {
                 t.extend(rough_textures(&d.rough));
                 t
             }
-            Bsdf::Plastic(p) => vec![&p.diffuse_reflectance, &p.specular_reflectance],
+            Bsdf::Plastic(p) => {
+                let mut t = vec![&p.diffuse_reflectance, &p.specular_reflectance];
+                if let Some(r) = &p.rough {
+                    t.extend([&r.roughness.alpha_u, &r.roughness.alpha_v]);
+                }
+                t
+            }
         }
     }
 

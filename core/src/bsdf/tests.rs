@@ -44,6 +44,20 @@ fn plastic() -> Bsdf {
         fdr_int: fresnel_diffuse_reflectance(1.0 / 1.5),
         nonlinear: false,
         specular_weight: 1.0 / 1.5,
+        rough: None,
+    })
+}
+
+fn roughplastic(dist: Distribution, a: f32) -> Bsdf {
+    let (coating, fdr_int) = RoughCoating::new(Roughness { dist, alpha_u: c(a), alpha_v: c(a) }, 1.5);
+    Bsdf::Plastic(Plastic {
+        eta: 1.5,
+        diffuse_reflectance: Texture::Const(Rgb::new(0.2, 0.5, 0.8)),
+        specular_reflectance: c(1.0),
+        fdr_int,
+        nonlinear: false,
+        specular_weight: 1.0 / 1.5,
+        rough: Some(coating),
     })
 }
 
@@ -190,7 +204,12 @@ fn sampled_directions_follow_the_pdf_and_weights_equal_eval_over_pdf() {
 #[test]
 fn degenerate_inputs_stay_finite_and_non_negative() {
     let mut rng = Pcg::new(5);
-    let mut bsdfs: Vec<Bsdf> = vec![Bsdf::Diffuse { reflectance: c(0.5) }, plastic()];
+    let mut bsdfs: Vec<Bsdf> = vec![
+        Bsdf::Diffuse { reflectance: c(0.5) },
+        plastic(),
+        roughplastic(Distribution::Ggx, 1e-4),
+        roughplastic(Distribution::Beckmann, 1.0),
+    ];
     for dist in [Distribution::Ggx, Distribution::Beckmann] {
         for a in [1e-4f32, 1e-2, 1.0, 10.0] {
             bsdfs.push(conductor(dist, a, a));

@@ -10,7 +10,7 @@ use super::xml::{Doc, Pos};
 use super::{FilmSettings, PathSettings, Scene, SceneError};
 use crate::bsdf::conductor::{conductor_preset, CONDUCTOR_PRESETS};
 use crate::bsdf::microfacet::fresnel_diffuse_reflectance;
-use crate::bsdf::{Bsdf, Conductor, Dielectric, Distribution, Plastic, Roughness};
+use crate::bsdf::{Bsdf, Conductor, Dielectric, Distribution, Plastic, RoughCoating, Roughness};
 use crate::camera::{tan_half_fov, Camera, ThinLens};
 use crate::film::Filter;
 use crate::geometry::{Accel, Disk, Geometry, Mesh, Shape, Sphere};
@@ -349,12 +349,14 @@ impl Builder<'_> {
                     Some("nearest") => FilterType::Nearest,
                     Some("trilinear") => FilterType::Trilinear,
                     Some("ewa") => FilterType::Ewa,
-                    Some(other) => return Err(self.err(
-                        doc.pos_of(i, "filter_type"),
-                        format!(
+                    Some(other) => {
+                        return Err(self.err(
+                            doc.pos_of(i, "filter_type"),
+                            format!(
                             "unknown filter_type '{other}' (expected bilinear, nearest, trilinear or ewa)"
                         ),
-                    )),
+                        ))
+                    }
                 };
                 let wrap = match doc.string(i, "wrap_mode")? {
                     None => WrapMode::Repeat,
@@ -443,19 +445,34 @@ impl Builder<'_> {
                     thin: doc.obj(i).plugin == "thindielectric",
                 })
             }
-            "plastic" => {
+            "plastic" | "roughplastic" => {
                 let eta = self.ior(i, "int_ior", "polypropylene")? / self.ior(i, "ext_ior", "air")?;
                 let diffuse_reflectance = self.color(i, "diffuse_reflectance", Rgb::splat(0.5))?;
                 let specular_reflectance = self.color(i, "specular_reflectance", Rgb::ONE)?;
                 let d = diffuse_reflectance.mean().element_sum() / 3.0;
                 let s = specular_reflectance.mean().element_sum() / 3.0;
+                let (rough, fdr_int) = match self.roughness(i)? {
+                    None => (None, fresnel_diffuse_reflectance(1.0 / eta)),
+                    Some(r) => {
+                        // The coating's transmittance is tabulated for one roughness.
+                        if !matches!((&r.alpha_u, &r.alpha_v), (Texture::Const(_), Texture::Const(_))) {
+                            return Err(self.err(
+                                doc.obj(i).pos,
+                                "roughplastic: alpha must be a constant, not a texture",
+                            ));
+                        }
+                        let (coating, fdr) = RoughCoating::new(r, eta);
+                        (Some(coating), fdr)
+                    }
+                };
                 Bsdf::Plastic(Plastic {
                     eta,
-                    fdr_int: fresnel_diffuse_reflectance(1.0 / eta),
+                    fdr_int,
                     nonlinear: doc.boolean_or(i, "nonlinear", false)?,
                     specular_weight: s / (d + s),
                     diffuse_reflectance,
                     specular_reflectance,
+                    rough,
                 })
             }
             _ => {
@@ -470,6 +487,7 @@ impl Builder<'_> {
                         "roughdielectric",
                         "thindielectric",
                         "plastic",
+                        "roughplastic",
                     ],
                 ))
             }
