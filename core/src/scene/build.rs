@@ -735,10 +735,7 @@ impl Builder<'_> {
         let doc = self.doc;
         let light = match doc.obj(i).plugin.as_str() {
             "point" => {
-                let intensity = match self.color(i, "intensity", Rgb::ONE)? {
-                    Texture::Const(c) => c,
-                    _ => return Err(self.err(doc.pos_of(i, "intensity"), "point intensity must be a colour")),
-                };
+                let intensity = self.const_color(i, "intensity", Rgb::ONE)?;
                 let m = doc.transform(i, "to_world")?;
                 let p = doc.point(i, "position")?;
                 let position = match (m, p) {
@@ -751,10 +748,7 @@ impl Builder<'_> {
                 };
                 Light::Point { position, intensity }
             }
-            "constant" => match self.color(i, "radiance", Rgb::ONE)? {
-                Texture::Const(radiance) => Light::Constant { radiance },
-                _ => return Err(self.err(doc.pos_of(i, "radiance"), "constant radiance must be a colour")),
-            },
+            "constant" => Light::Constant { radiance: self.const_color(i, "radiance", Rgb::ONE)? },
             "envmap" => {
                 let rel =
                     doc.string(i, "filename")?.ok_or_else(|| self.err(pos, "envmap needs a 'filename'"))?;

@@ -179,3 +179,31 @@ mod tests {
         assert!((b.bilinear(Vec2::new(0.5, 0.5), WrapMode::Clamp).x - 0.5).abs() < 1e-6);
     }
 }
+
+#[cfg(test)]
+mod load_tests {
+    use super::*;
+
+    #[test]
+    fn loads_hdr_linear_and_png_srgb() {
+        let dir = std::env::temp_dir().join(format!("furnace-bitmap-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // Radiance HDR: floats, no transfer function.
+        let hdr = dir.join("t.hdr");
+        let px = [image::Rgb([0.25f32, 2.0, 1000.0]), image::Rgb([0.0, 0.5, 1.0])];
+        let f = std::fs::File::create(&hdr).unwrap();
+        image::codecs::hdr::HdrEncoder::new(f).encode(&px, 2, 1).unwrap();
+        let b = Bitmap::load(&hdr, false).unwrap();
+        assert_eq!((b.width, b.height), (2, 1));
+        for (got, want) in b.texels.iter().zip([Rgb::new(0.25, 2.0, 1000.0), Rgb::new(0.0, 0.5, 1.0)]) {
+            assert!((*got - want).abs().max_element() <= 0.01 * want.max_element(), "{got} vs {want}");
+        }
+        // 8-bit PNG: sRGB-decoded unless raw.
+        let png = dir.join("t.png");
+        image::save_buffer(&png, &[188u8, 188, 188], 1, 1, image::ExtendedColorType::Rgb8).unwrap();
+        let srgb = Bitmap::load(&png, false).unwrap().texels[0].x;
+        let raw = Bitmap::load(&png, true).unwrap().texels[0].x;
+        assert!((srgb - srgb_to_linear(188.0 / 255.0)).abs() < 1e-6 && (raw - 188.0 / 255.0).abs() < 1e-6);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
