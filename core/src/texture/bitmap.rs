@@ -33,8 +33,9 @@ impl WrapMode {
         }
     }
 
+    /// Index `i` of a row or column of `n` texels, wrapped.
     #[inline]
-    fn apply(self, i: i64, n: i64) -> usize {
+    pub fn apply(self, i: i64, n: i64) -> usize {
         (match self {
             WrapMode::Repeat => i.rem_euclid(n),
             WrapMode::Clamp => i.clamp(0, n - 1),

@@ -132,8 +132,8 @@ impl MipMap {
                 if r2 < 1.0 {
                     // Gaussian weight, 0 at the ellipse's edge.
                     let wgt = (-2.0 * r2).exp() - falloff;
-                    let xi = wrap_index(x, b.width, wrap);
-                    let yi = wrap_index(y, b.height, wrap);
+                    let xi = wrap.apply(x, b.width as i64);
+                    let yi = wrap.apply(y, b.height as i64);
                     sum += b.texel(xi, yi) * wgt;
                     wsum += wgt;
                 }
@@ -145,22 +145,6 @@ impl MipMap {
             b.bilinear(uv, wrap)
         }
     }
-}
-
-fn wrap_index(i: i64, n: usize, wrap: WrapMode) -> usize {
-    let n = n as i64;
-    (match wrap {
-        WrapMode::Repeat => i.rem_euclid(n),
-        WrapMode::Clamp => i.clamp(0, n - 1),
-        WrapMode::Mirror => {
-            let k = i.rem_euclid(2 * n);
-            if k >= n {
-                2 * n - 1 - k
-            } else {
-                k
-            }
-        }
-    }) as usize
 }
 
 #[cfg(test)]
