@@ -53,3 +53,27 @@ fn bad_scene_fails_with_file_line_and_reason() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("NAME=VALUE"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Every shipped example loads and renders (the README's first command renders one).
+#[test]
+fn examples_render() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples");
+    let out = scratch("examples");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().and_then(|e| e.to_str()) != Some("xml") {
+            continue;
+        }
+        let o = furnace()
+            .args(["render", "--spp", "1", "-D", "spp=1", "-o"])
+            .arg(out.join("e.exr"))
+            .arg(&path)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&o.stderr));
+        n += 1;
+    }
+    assert!(n >= 3, "only {n} examples");
+    std::fs::remove_dir_all(&out).ok();
+}
