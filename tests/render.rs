@@ -390,3 +390,70 @@ fn roughplastic_matches_mitsuba_reference() {
     // 0.00490 (a sun firefly), 0.00173; the bound uses the median.
     check_reference("roughplastic.xml", "roughplastic.exr", 0.00173);
 }
+
+/// The grazing textured plane with a pyramid whose level k is the flat colour k: from the near
+/// to the far rows, trilinear and EWA show the level that the footprint calls for, computed
+/// here from finite differences of real intersections.
+#[test]
+fn grazing_plane_shows_the_mip_level_of_its_footprint() {
+    use furnace_core::bsdf::Bsdf;
+    use furnace_core::geometry::RayDifferentials;
+    use furnace_core::math::{Rgb, Vec2};
+    use furnace_core::render::FOOTPRINT_PIXELS;
+    use furnace_core::texture::{Bitmap, BitmapTexture, MipMap, Texture};
+    use std::sync::Arc;
+    for filter in ["trilinear", "ewa"] {
+        let mut s = textured_with_filter(filter);
+        let Bsdf::Diffuse { reflectance: Texture::Bitmap(bt) } = &s.bsdfs[0] else { panic!("plane BSDF") };
+        let size = bt.bitmap.width;
+        let mut levels = Vec::new();
+        let (mut n, mut k) = (size, 0.0f32);
+        while n >= 1 {
+            levels.push(Bitmap { width: n, height: n, texels: vec![Rgb::splat(k); n * n] });
+            n /= 2;
+            k += 1.0;
+        }
+        let top = (levels.len() - 1) as f32;
+        let coloured = BitmapTexture {
+            bitmap: bt.bitmap.clone(),
+            filter: bt.filter,
+            wrap: bt.wrap,
+            to_uv: bt.to_uv,
+            mip: Some(MipMap::from_levels(levels)),
+        };
+        let scale = bt.to_uv[0][0];
+        s.bsdfs[0] = Bsdf::Diffuse { reflectance: Texture::Bitmap(Arc::new(coloured)) };
+        let Bsdf::Diffuse { reflectance: tex } = &s.bsdfs[0] else { unreachable!() };
+        let mut seen = Vec::new();
+        for y in (51..256).step_by(5) {
+            let pos = Vec2::new(128.5, y as f32 + 0.5);
+            let Some(it) = s.intersect(&s.camera.ray_pinhole(pos)) else { continue };
+            let d = RayDifferentials {
+                rx: s.camera.ray_pinhole(pos + Vec2::new(FOOTPRINT_PIXELS, 0.0)),
+                ry: s.camera.ray_pinhole(pos + Vec2::new(0.0, FOOTPRINT_PIXELS)),
+            };
+            let got = tex.eval(it.tex_coord(&d)).x;
+            // Footprint axes in texels of level 0, from real intersections.
+            let texels = |r| (s.intersect(r).unwrap().uv - it.uv) * scale * size as f32;
+            let (ax, ay) = (texels(&d.rx), texels(&d.ry));
+            let expected = if filter == "trilinear" {
+                ax.abs().max(ay.abs()).max_element()
+            } else {
+                let (major, minor) = (ax.length().max(ay.length()), ax.length().min(ay.length()));
+                minor.max(major / furnace_core::texture::mipmap::MAX_ANISOTROPY)
+            }
+            .log2()
+            .clamp(0.0, top);
+            assert!(
+                (got - expected).abs() < 0.15,
+                "{filter} row {y}: level {got}, footprint says {expected}"
+            );
+            seen.push(got);
+        }
+        // Rows run from the horizon (coarse levels) to the near field (level 0).
+        assert!(
+            seen.len() > 30 && seen.first().unwrap() > &5.0 && seen.last().unwrap() < &0.5,
+            "{filter}: {seen:?}"
+        );
+    }
+}
