@@ -25,11 +25,6 @@ pub fn to_fixed(v: f64) -> i128 {
     (v * (FIXED_BITS as f64).exp2()).round() as i128
 }
 
-#[inline]
-pub fn from_fixed(v: i128) -> f64 {
-    v as f64 * (-FIXED_BITS as f64).exp2()
-}
-
 /// Whether a sample's radiance can be accumulated: finite, and within [`MAX_RADIANCE`].
 #[inline]
 pub fn is_valid_sample(l: Rgb) -> bool {

@@ -46,11 +46,6 @@ impl SampleStream {
         let unit = |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
         [unit(1), unit(2), unit(3), unit(4)]
     }
-
-    /// How many 4-D sets this stream has drawn.
-    pub fn sets_drawn(&self) -> u32 {
-        self.set
-    }
 }
 
 #[cfg(test)]

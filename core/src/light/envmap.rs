@@ -103,10 +103,6 @@ impl EnvMap {
         self.total
     }
 
-    pub fn can_sample(&self) -> bool {
-        self.total > 0.0
-    }
-
     /// (u, v) of world direction `d`.
     #[inline]
     fn uv(&self, d: Vec3) -> Vec2 {

@@ -129,14 +129,6 @@ impl Light {
         matches!(self, Light::Constant { .. } | Light::Envmap(_))
     }
 
-    /// Whether sampling this light can ever produce light (an all-black envmap cannot).
-    pub fn can_sample(&self) -> bool {
-        match self {
-            Light::Envmap(e) => e.can_sample(),
-            _ => true,
-        }
-    }
-
     /// Samples the light from `it` with `u_prim` (choosing a primitive) and `u`.
     pub fn sample(&self, shapes: &[Shape], it: &Interaction, u_prim: f32, u: Vec2) -> Option<LightSample> {
         match self {

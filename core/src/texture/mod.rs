@@ -93,10 +93,6 @@ impl Texture {
         matches!(self, Texture::Const(c) if *c == Rgb::ZERO)
     }
 
-    pub fn is_bitmap(&self) -> bool {
-        matches!(self, Texture::Bitmap(_))
-    }
-
     /// Whether lookups use a footprint (a `trilinear` or `ewa` bitmap).
     pub fn wants_footprint(&self) -> bool {
         matches!(self, Texture::Bitmap(b) if b.mip.is_some())
