@@ -187,3 +187,16 @@ fn lookat_without_up_follows_mitsuba() {
     assert!((m.z_axis.truncate() - dir).length() < 1e-6);
     assert!((m.x_axis.truncate() - up.cross(dir).normalize()).length() < 1e-6);
 }
+
+#[test]
+fn hair_parameters_follow_mitsuba() {
+    let e = error_of(
+        r#"    <shape type="sphere"><bsdf type="hair"><rgb name="sigma_a" value="1"/><float name="eumelanin" value="1"/></bsdf></shape>"#,
+    );
+    assert!(e.message.contains("one of sigma_a"), "{e}");
+    let e = error_of(
+        r#"    <shape type="sphere"><bsdf type="hair"><float name="beta_m" value="0.3"/></bsdf></shape>"#,
+    );
+    assert!(e.message.contains("unsupported parameter 'beta_m'"), "{e}");
+    load_str(&scene_with(r#"    <shape type="sphere"><bsdf type="hair"><rgb name="reflectance" value="0.6, 0.4, 0.2"/></bsdf></shape>"#)).unwrap();
+}

@@ -6,6 +6,7 @@
 pub mod conductor;
 pub mod dielectric;
 pub mod diffuse;
+pub mod hair;
 pub mod microfacet;
 pub mod plastic;
 #[cfg(test)]
@@ -46,6 +47,8 @@ pub enum Bsdf {
     Dielectric(Dielectric),
     /// `plastic`.
     Plastic(Plastic),
+    /// `hair` (Chiang et al. 2016); the local x axis runs along the fibre.
+    Hair(hair::Hair),
 }
 
 impl Bsdf {
@@ -61,13 +64,14 @@ impl Bsdf {
             Bsdf::Dielectric(_) => "dielectric",
             Bsdf::Plastic(p) if p.rough.is_some() => "roughplastic",
             Bsdf::Plastic(_) => "plastic",
+            Bsdf::Hair(_) => "hair",
         }
     }
 
     /// Whether the BSDF has a non-delta component, so that light sampling can help.
     pub fn is_smooth(&self) -> bool {
         match self {
-            Bsdf::Diffuse { .. } | Bsdf::Plastic(_) => true,
+            Bsdf::Diffuse { .. } | Bsdf::Plastic(_) | Bsdf::Hair(_) => true,
             Bsdf::TwoSided { front, back } => front.is_smooth() || back.is_smooth(),
             Bsdf::Conductor(c) => c.rough.is_some(),
             Bsdf::Dielectric(d) => d.rough.is_some() && !d.thin,
@@ -109,6 +113,7 @@ impl Bsdf {
                 }
                 t
             }
+            Bsdf::Hair(_) => Vec::new(),
         }
     }
 
@@ -126,6 +131,7 @@ impl Bsdf {
             Bsdf::Conductor(c) => c.eval(uv, wo, wi),
             Bsdf::Dielectric(d) => d.eval(uv, wo, wi),
             Bsdf::Plastic(p) => p.eval(uv, wo, wi),
+            Bsdf::Hair(h) => h.eval(wo, wi, hair::Hair::h_from(wo)),
         }
     }
 
@@ -143,6 +149,7 @@ impl Bsdf {
             Bsdf::Conductor(c) => c.pdf(uv, wo, wi),
             Bsdf::Dielectric(d) => d.pdf(uv, wo, wi),
             Bsdf::Plastic(p) => p.pdf(uv, wo, wi),
+            Bsdf::Hair(h) => h.pdf(wo, wi, hair::Hair::h_from(wo)),
         }
     }
 
@@ -161,6 +168,7 @@ impl Bsdf {
             Bsdf::Conductor(c) => c.sample(uv, wo, u2),
             Bsdf::Dielectric(d) => d.sample(uv, wo, u1, u2),
             Bsdf::Plastic(p) => p.sample(uv, wo, u1, u2),
+            Bsdf::Hair(h) => h.sample(wo, hair::Hair::h_from(wo), u1, u2),
         }
     }
 }

@@ -445,6 +445,41 @@ impl Builder<'_> {
                     thin: doc.obj(i).plugin == "thindielectric",
                 })
             }
+            "hair" => {
+                let eta = self.ior(i, "int_ior", "amber")? / self.ior(i, "ext_ior", "air")?;
+                let beta_m = doc.float_or(i, "longitudinal_roughness", 0.3)?;
+                let beta_n = doc.float_or(i, "azimuthal_roughness", 0.3)?;
+                for (name, b) in [("longitudinal_roughness", beta_m), ("azimuthal_roughness", beta_n)] {
+                    if !(b > 0.0 && b <= 1.0) {
+                        return Err(
+                            self.err(doc.pos_of(i, name), format!("'{name}' must lie in (0, 1], found {b}"))
+                        );
+                    }
+                }
+                let tilt = doc.float_or(i, "scale_tilt", 2.0)?;
+                let pigments = doc.has(i, "eumelanin") || doc.has(i, "pheomelanin");
+                let given = [doc.has(i, "sigma_a"), pigments, doc.has(i, "reflectance")];
+                if given.iter().filter(|&&g| g).count() > 1 {
+                    return Err(self.err(
+                        doc.obj(i).pos,
+                        "hair: give one of sigma_a, the pigments (eumelanin/pheomelanin) or reflectance",
+                    ));
+                }
+                let sigma_a = if doc.has(i, "sigma_a") {
+                    self.const_color(i, "sigma_a", Rgb::ZERO)? * self.nonneg_float(i, "scale", 1.0)?
+                } else if doc.has(i, "reflectance") {
+                    crate::bsdf::hair::Hair::sigma_a_from_reflectance(
+                        self.const_color(i, "reflectance", Rgb::splat(0.5))?,
+                        beta_n,
+                    )
+                } else {
+                    crate::bsdf::hair::Hair::sigma_a_from_melanin(
+                        self.nonneg_float(i, "eumelanin", 1.3)?,
+                        self.nonneg_float(i, "pheomelanin", 0.2)?,
+                    )
+                };
+                Bsdf::Hair(crate::bsdf::hair::Hair::new(sigma_a, eta, beta_m, beta_n, tilt))
+            }
             "plastic" | "roughplastic" => {
                 let eta = self.ior(i, "int_ior", "polypropylene")? / self.ior(i, "ext_ior", "air")?;
                 let diffuse_reflectance = self.color(i, "diffuse_reflectance", Rgb::splat(0.5))?;
@@ -488,6 +523,7 @@ impl Builder<'_> {
                         "thindielectric",
                         "plastic",
                         "roughplastic",
+                        "hair",
                     ],
                 ))
             }

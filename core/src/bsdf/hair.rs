@@ -1,0 +1,467 @@
+//! The hair BSDF of Chiang, Bitterli, Tappan and Burley 2016 ("A Practical and Controllable
+//! Hair and Fur Model for Production Path Tracing"), written from the paper and the PBR book's
+//! description of it.
+//!
+//! Local frame: x along the fibre, z the surface normal, y = z x x. Longitudinal angle theta
+//! from the normal plane (sin theta = w.x), azimuth phi = atan2(w.z, w.y). `h` in [-1, 1] is
+//! the offset across the fibre where the ray hit it: gamma_o = asin(h).
+//!
+//! f cos = sum_p Mp(theta_i, theta_o) Ap(theta_o, h) Np(phi), p = R, TT, TRT, plus a residual
+//! lobe (p = 3) for all longer paths with an isotropic azimuth:
+//! - Mp: d'Eon et al. 2011's longitudinal term, in log form for v <= 0.1 so that neither
+//!   sinh(1/v) nor I0 overflows; the cuticle tilt rotates theta_o per lobe.
+//! - Ap: Fresnel and the absorption T = exp(-sigma_a 2 cos gamma_t / cos theta_t).
+//! - Np: a logistic in phi - Phi(p, h), trimmed to [-pi, pi].
+//!
+//! Sampling picks a lobe by Ap, then samples Mp and Np exactly, so pdf and sampling agree.
+
+use glam::{Vec2, Vec3};
+
+use super::microfacet::fresnel_dielectric;
+use super::BsdfSample;
+use crate::math::{luminance, safe_asin, safe_sqrt, Rgb, PI};
+
+const P_MAX: usize = 3;
+
+#[derive(Clone, Debug)]
+pub struct Hair {
+    pub sigma_a: Rgb,
+    /// Relative index of refraction of the fibre.
+    pub eta: f32,
+    /// Longitudinal variance per lobe (the paper's roughness map, eq. 3 of the seed document).
+    v: [f32; P_MAX + 1],
+    /// Azimuthal logistic scale (eq. 4 with sqrt(pi / 8)).
+    s: f32,
+    /// sin and cos of 2^k alpha, k = 0, 1, 2 (cuticle tilt).
+    sin2k: [f32; 3],
+    cos2k: [f32; 3],
+}
+
+impl Hair {
+    /// `beta_m`, `beta_n`: longitudinal and azimuthal roughness in [0, 1]; `alpha_deg`: tilt.
+    pub fn new(sigma_a: Rgb, eta: f32, beta_m: f32, beta_n: f32, alpha_deg: f32) -> Hair {
+        let bm = beta_m.clamp(1e-3, 1.0);
+        let bn = beta_n.clamp(1e-3, 1.0);
+        let v0 = (0.726 * bm + 0.812 * bm * bm + 3.7 * bm.powi(20)).powi(2);
+        let v = [v0, 0.25 * v0, 4.0 * v0, 4.0 * v0];
+        let s = (PI / 8.0).sqrt() * (0.265 * bn + 1.194 * bn * bn + 5.372 * bn.powi(22));
+        let mut sin2k = [0.0; 3];
+        let mut cos2k = [0.0; 3];
+        sin2k[0] = alpha_deg.to_radians().sin();
+        cos2k[0] = safe_sqrt(1.0 - sin2k[0] * sin2k[0]);
+        for i in 1..3 {
+            sin2k[i] = 2.0 * cos2k[i - 1] * sin2k[i - 1];
+            cos2k[i] = cos2k[i - 1] * cos2k[i - 1] - sin2k[i - 1] * sin2k[i - 1];
+        }
+        Hair { sigma_a, eta, v, s, sin2k, cos2k }
+    }
+
+    /// Absorption from pigment concentrations (RGB fits of eumelanin and pheomelanin).
+    pub fn sigma_a_from_melanin(eumelanin: f32, pheomelanin: f32) -> Rgb {
+        Rgb::new(0.419, 0.697, 1.37) * eumelanin + Rgb::new(0.187, 0.4, 1.05) * pheomelanin
+    }
+
+    /// The paper's map from a perceived colour to sigma_a, given azimuthal roughness beta_n.
+    pub fn sigma_a_from_reflectance(c: Rgb, beta_n: f32) -> Rgb {
+        let b = beta_n;
+        let d = 5.969 - 0.215 * b + 2.532 * b * b - 10.73 * b.powi(3) + 5.574 * b.powi(4) + 0.245 * b.powi(5);
+        let f = |x: f32| (x.max(1e-4).ln() / d).powi(2);
+        Rgb::new(f(c.x), f(c.y), f(c.z))
+    }
+
+    /// theta_o rotated by the cuticle tilt for lobe p: (sin, |cos|).
+    #[inline]
+    fn tilt(&self, p: usize, sin_o: f32, cos_o: f32) -> (f32, f32) {
+        let (s, c) = match p {
+            0 => {
+                (sin_o * self.cos2k[1] - cos_o * self.sin2k[1], cos_o * self.cos2k[1] + sin_o * self.sin2k[1])
+            }
+            1 => {
+                (sin_o * self.cos2k[0] + cos_o * self.sin2k[0], cos_o * self.cos2k[0] - sin_o * self.sin2k[0])
+            }
+            2 => {
+                (sin_o * self.cos2k[2] + cos_o * self.sin2k[2], cos_o * self.cos2k[2] - sin_o * self.sin2k[2])
+            }
+            _ => (sin_o, cos_o),
+        };
+        (s, c.abs())
+    }
+
+    /// Attenuations A_p (R, TT, TRT, residual) and gamma_o, gamma_t for this wo and h.
+    fn attenuation(&self, sin_o: f32, cos_o: f32, h: f32) -> ([Rgb; P_MAX + 1], f32, f32) {
+        let sin_t = sin_o / self.eta;
+        let cos_t = safe_sqrt(1.0 - sin_t * sin_t);
+        let etap = safe_sqrt(self.eta * self.eta - sin_o * sin_o) / cos_o.max(1e-8);
+        let sin_gt = (h / etap).clamp(-1.0, 1.0);
+        let cos_gt = safe_sqrt(1.0 - sin_gt * sin_gt);
+        let gamma_t = safe_asin(sin_gt);
+        let gamma_o = safe_asin(h);
+        let t = (-self.sigma_a * (2.0 * cos_gt / cos_t.max(1e-8))).exp();
+        let cos_gamma_o = safe_sqrt(1.0 - h * h);
+        let f = fresnel_dielectric(cos_o * cos_gamma_o, self.eta).0;
+        let mut a = [Rgb::ZERO; P_MAX + 1];
+        a[0] = Rgb::splat(f);
+        a[1] = t * ((1.0 - f) * (1.0 - f));
+        for p in 2..P_MAX {
+            a[p] = a[p - 1] * t * f;
+        }
+        let denom = Rgb::ONE - t * f;
+        a[P_MAX] = a[P_MAX - 1] * t * f / denom.max(Rgb::splat(1e-12));
+        (a, gamma_o, gamma_t)
+    }
+
+    /// Lobe selection probabilities, proportional to the luminance of A_p.
+    fn lobe_pdf(a: &[Rgb; P_MAX + 1]) -> [f32; P_MAX + 1] {
+        let mut w = [0.0; P_MAX + 1];
+        let mut sum = 0.0;
+        for p in 0..=P_MAX {
+            w[p] = luminance(a[p]).max(0.0);
+            sum += w[p];
+        }
+        if sum > 0.0 {
+            w.iter_mut().for_each(|x| *x /= sum);
+        } else {
+            w = [0.25; P_MAX + 1];
+        }
+        w
+    }
+
+    fn angles(w: Vec3) -> (f32, f32, f32) {
+        let sin = w.x.clamp(-1.0, 1.0);
+        (sin, safe_sqrt(1.0 - sin * sin), w.z.atan2(w.y))
+    }
+
+    /// f |cos| summed over lobes (`weights` = A_p) or the pdf (`weights` = lobe probabilities).
+    fn lobes<T: Copy + std::ops::Mul<f32, Output = T> + std::ops::Add<Output = T>>(
+        &self,
+        wo: Vec3,
+        wi: Vec3,
+        h: f32,
+        zero: T,
+        weights: impl Fn(&[Rgb; P_MAX + 1], usize) -> T,
+    ) -> T {
+        let (sin_o, cos_o, phi_o) = Self::angles(wo);
+        let (sin_i, cos_i, phi_i) = Self::angles(wi);
+        let (a, gamma_o, gamma_t) = self.attenuation(sin_o, cos_o, h);
+        let phi = phi_i - phi_o;
+        let mut sum = zero;
+        for p in 0..P_MAX {
+            let (so, co) = self.tilt(p, sin_o, cos_o);
+            let m = mp(cos_i, co, sin_i, so, self.v[p]);
+            let n = np(phi, p, self.s, gamma_o, gamma_t);
+            sum = sum + weights(&a, p) * (m * n);
+        }
+        let m = mp(cos_i, cos_o, sin_i, sin_o, self.v[P_MAX]);
+        sum + weights(&a, P_MAX) * (m / (2.0 * PI))
+    }
+
+    /// The offset across the fibre implied by `wo` and the normal: for a round fibre the
+    /// normal at the hit makes the angle gamma_o = asin(h) with wo's projection across it.
+    pub fn h_from(wo: Vec3) -> f32 {
+        let len = (wo.y * wo.y + wo.z * wo.z).sqrt();
+        if len > 0.0 {
+            (-wo.y / len).clamp(-1.0, 1.0)
+        } else {
+            0.0
+        }
+    }
+
+    pub fn eval(&self, wo: Vec3, wi: Vec3, h: f32) -> Rgb {
+        let r = self.lobes(wo, wi, h, Rgb::ZERO, |a, p| a[p]);
+        if r.is_finite() {
+            r.max(Rgb::ZERO)
+        } else {
+            Rgb::ZERO
+        }
+    }
+
+    pub fn pdf(&self, wo: Vec3, wi: Vec3, h: f32) -> f32 {
+        let r = self.lobes(wo, wi, h, 0.0f32, |a, p| Self::lobe_pdf(a)[p]);
+        if r.is_finite() {
+            r.max(0.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// Picks a lobe with `u1` (its remainder then samples the azimuth) and samples Mp with `u2`.
+    pub fn sample(&self, wo: Vec3, h: f32, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+        let (sin_o, cos_o, phi_o) = Self::angles(wo);
+        let (a, gamma_o, gamma_t) = self.attenuation(sin_o, cos_o, h);
+        let lp = Self::lobe_pdf(&a);
+        let mut p = P_MAX;
+        let mut u = u1;
+        for (k, &w) in lp.iter().enumerate().take(P_MAX) {
+            if u < w {
+                p = k;
+                break;
+            }
+            u -= w;
+        }
+        let u_phi = if p < P_MAX {
+            (u / lp[p]).clamp(0.0, 1.0 - f32::EPSILON)
+        } else {
+            (u / lp[P_MAX].max(1e-12)).clamp(0.0, 1.0 - f32::EPSILON)
+        };
+        let (so, co) = self.tilt(p, sin_o, cos_o);
+        // Sample Mp (d'Eon et al. 2011): cos theta = 1 + v log(u + (1 - u) e^(-2/v)).
+        let v = self.v[p];
+        let u0 = u2.x.max(1e-5);
+        let cos_t = 1.0 + v * (u0 + (1.0 - u0) * (-2.0 / v).exp()).ln();
+        let sin_t = safe_sqrt(1.0 - cos_t * cos_t);
+        let cos_phi = (2.0 * PI * u2.y).cos();
+        let sin_i = (-cos_t * so + sin_t * cos_phi * co).clamp(-1.0, 1.0);
+        let cos_i = safe_sqrt(1.0 - sin_i * sin_i);
+        let dphi = if p < P_MAX {
+            phi_fn(p, gamma_o, gamma_t) + sample_trimmed_logistic(u_phi, self.s)
+        } else {
+            2.0 * PI * u_phi
+        };
+        let phi_i = phi_o + dphi;
+        let wi = Vec3::new(sin_i, cos_i * phi_i.cos(), cos_i * phi_i.sin());
+        let pdf = self.pdf(wo, wi, h);
+        if !(pdf > 0.0) || !wi.is_finite() {
+            return None;
+        }
+        let weight = self.eval(wo, wi, h) / pdf;
+        weight.is_finite().then_some(BsdfSample { wi, weight, pdf, delta: false, eta: 1.0 })
+    }
+}
+
+/// ln I0(x) without overflow.
+fn log_i0(x: f32) -> f32 {
+    if x > 12.0 {
+        x + 0.5 * (-(2.0 * PI).ln() + (1.0 / x).ln() + 1.0 / (8.0 * x))
+    } else {
+        i0(x).ln()
+    }
+}
+
+/// Modified Bessel function of the first kind, order 0 (power series).
+fn i0(x: f32) -> f32 {
+    let x2 = (x as f64) * (x as f64) * 0.25;
+    let (mut sum, mut term) = (1.0f64, 1.0f64);
+    for k in 1..40 {
+        term *= x2 / (k as f64 * k as f64);
+        sum += term;
+        if term < 1e-17 * sum {
+            break;
+        }
+    }
+    sum as f32
+}
+
+/// d'Eon et al. 2011: Mp = exp(-sin_i sin_o / v) I0(cos_i cos_o / v) / (2 v sinh(1 / v)),
+/// in log form for v <= 0.1.
+fn mp(cos_i: f32, cos_o: f32, sin_i: f32, sin_o: f32, v: f32) -> f32 {
+    let a = cos_i * cos_o / v;
+    let b = sin_i * sin_o / v;
+    if v <= 0.1 {
+        (log_i0(a) - b - 1.0 / v - v.ln()).exp()
+    } else {
+        (-b).exp() * i0(a) / (2.0 * v * (1.0 / v).sinh())
+    }
+}
+
+/// Azimuthal deflection of lobe p: 2 p gamma_t - 2 gamma_o + p pi.
+fn phi_fn(p: usize, gamma_o: f32, gamma_t: f32) -> f32 {
+    2.0 * p as f32 * gamma_t - 2.0 * gamma_o + p as f32 * PI
+}
+
+fn logistic(x: f32, s: f32) -> f32 {
+    let x = x.abs();
+    let e = (-x / s).exp();
+    e / (s * (1.0 + e) * (1.0 + e))
+}
+
+fn logistic_cdf(x: f32, s: f32) -> f32 {
+    1.0 / (1.0 + (-x / s).exp())
+}
+
+fn trimmed_logistic(x: f32, s: f32) -> f32 {
+    logistic(x, s) / (logistic_cdf(PI, s) - logistic_cdf(-PI, s))
+}
+
+fn sample_trimmed_logistic(u: f32, s: f32) -> f32 {
+    let k = logistic_cdf(PI, s) - logistic_cdf(-PI, s);
+    let x = -s * (1.0 / (u * k + logistic_cdf(-PI, s)) - 1.0).ln();
+    x.clamp(-PI, PI)
+}
+
+fn np(phi: f32, p: usize, s: f32, gamma_o: f32, gamma_t: f32) -> f32 {
+    let mut d = phi - phi_fn(p, gamma_o, gamma_t);
+    d = (d + PI).rem_euclid(2.0 * PI) - PI;
+    trimmed_logistic(d, s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::{chi2_test, sidak_alpha, Grid, Pcg};
+
+    fn random_dir(rng: &mut Pcg) -> Vec3 {
+        crate::math::square_to_uniform_sphere(rng.next_2d())
+    }
+
+    /// White furnace by evaluation: sigma_a 0, beta_m and beta_n in {0.1 .. 0.9}, random h,
+    /// uniform sphere directions: the mean of f cos / pdf_uniform is 1 within 5%.
+    #[test]
+    fn white_furnace_by_evaluation_within_5_percent() {
+        let mut rng = Pcg::new(11);
+        for bm in [0.1f32, 0.3, 0.5, 0.7, 0.9] {
+            for bn in [0.1f32, 0.3, 0.5, 0.7, 0.9] {
+                let hair = Hair::new(Rgb::ZERO, 1.55, bm, bn, 2.0);
+                let n = 300_000;
+                let mut sum = 0.0f64;
+                for _ in 0..n {
+                    let (wo, wi) = (random_dir(&mut rng), random_dir(&mut rng));
+                    let h = -1.0 + 2.0 * rng.next_f32();
+                    sum += hair.eval(wo, wi, h).y as f64 * 4.0 * std::f64::consts::PI;
+                }
+                let mean = sum / n as f64;
+                assert!((mean - 1.0).abs() < 0.05, "beta_m {bm} beta_n {bn}: {mean}");
+            }
+        }
+    }
+
+    /// White furnace by sampling: every weight is 1 within 1e-3 at sigma_a 0 (so the mean is
+    /// 1 within 1% and far better).
+    #[test]
+    fn white_furnace_by_sampling_weights_are_one() {
+        let mut rng = Pcg::new(12);
+        for bm in [0.1f32, 0.3, 0.5, 0.7, 0.9] {
+            for bn in [0.1f32, 0.3, 0.5, 0.7, 0.9] {
+                let hair = Hair::new(Rgb::ZERO, 1.55, bm, bn, 2.0);
+                let (mut sum, mut n) = (0.0f64, 0);
+                for _ in 0..20_000 {
+                    let wo = random_dir(&mut rng);
+                    let h = -1.0 + 2.0 * rng.next_f32();
+                    if let Some(s) = hair.sample(wo, h, rng.next_f32(), rng.next_2d()) {
+                        for c in 0..3 {
+                            assert!(
+                                (s.weight[c] - 1.0).abs() < 1e-3,
+                                "beta {bm}/{bn}: weight {:?}",
+                                s.weight
+                            );
+                        }
+                        sum += s.weight.y as f64;
+                        n += 1;
+                    }
+                }
+                assert!(n > 19_000 && (sum / n as f64 - 1.0).abs() < 0.01);
+            }
+        }
+    }
+
+    #[test]
+    fn attenuations_sum_to_one_without_absorption() {
+        let hair = Hair::new(Rgb::ZERO, 1.55, 0.3, 0.3, 2.0);
+        for (sin_o, h) in [(0.0f32, 0.0f32), (0.5, 0.7), (-0.9, -0.99), (0.3, 1.0)] {
+            let (a, _, _) = hair.attenuation(sin_o, safe_sqrt(1.0 - sin_o * sin_o), h);
+            let s: Rgb = a.iter().copied().sum();
+            assert!((s - Rgb::ONE).abs().max_element() < 1e-5, "{sin_o} {h}: {s}");
+        }
+    }
+
+    /// With sigma_a 0.25 and tilts 0, 2 and 10 degrees, importance sampling and uniform
+    /// sampling estimate the same directional albedo (within 3%).
+    #[test]
+    fn importance_and_uniform_estimates_agree() {
+        let mut rng = Pcg::new(13);
+        for alpha in [0.0f32, 2.0, 10.0] {
+            let hair = Hair::new(Rgb::splat(0.25), 1.55, 0.3, 0.3, alpha);
+            let wo = Vec3::new(0.3, 0.5, 0.8).normalize();
+            let h = 0.3;
+            let n = 400_000;
+            let (mut imp, mut uni) = (0.0f64, 0.0f64);
+            for _ in 0..n {
+                if let Some(s) = hair.sample(wo, h, rng.next_f32(), rng.next_2d()) {
+                    imp += s.weight.y as f64;
+                }
+                uni += hair.eval(wo, random_dir(&mut rng), h).y as f64 * 4.0 * std::f64::consts::PI;
+            }
+            let (imp, uni) = (imp / n as f64, uni / n as f64);
+            assert!((imp / uni - 1.0).abs() < 0.03, "tilt {alpha}: importance {imp}, uniform {uni}");
+        }
+    }
+
+    #[test]
+    fn sampled_directions_follow_the_pdf() {
+        let cases: Vec<(f32, f32, f32, f32)> = [0.1f32, 0.3, 0.7]
+            .iter()
+            .flat_map(|&b| [(b, b, 0.0f32, 0.2f32), (b, b, 0.9, -0.6), (b, 0.5, -0.99, 0.95)])
+            .collect();
+        let alpha = sidak_alpha(cases.len());
+        for (bm, bn, sin_o, h) in cases {
+            let hair = Hair::new(Rgb::splat(0.2), 1.55, bm, bn, 2.0);
+            let wo =
+                Vec3::new(sin_o, safe_sqrt(1.0 - sin_o * sin_o) * 0.6, safe_sqrt(1.0 - sin_o * sin_o) * 0.8);
+            let r = chi2_test(
+                100_000,
+                Grid::uniform(16, 32),
+                7,
+                |rng| hair.sample(wo, h, rng.next_f32(), rng.next_2d()).map(|s| s.wi),
+                |w| hair.pdf(wo, w, h) as f64,
+                |_| true,
+            );
+            assert!(r.p_value > alpha, "beta {bm}/{bn} sin_o {sin_o} h {h}: {r:?}");
+            assert!((r.pdf_integral - 1.0).abs() < 0.01, "beta {bm}/{bn}: pdf integral {}", r.pdf_integral);
+        }
+    }
+
+    #[test]
+    fn edge_cases_stay_finite_and_non_negative() {
+        let mut rng = Pcg::new(14);
+        let ulp = 1.0 - f32::EPSILON / 2.0;
+        for (bm, bn) in [(0.01f32, 0.01f32), (1.0, 1.0), (0.01, 1.0)] {
+            let hair = Hair::new(Rgb::splat(0.5), 1.55, bm, bn, 2.0);
+            for wo in [Vec3::X, -Vec3::X, Vec3::Z, Vec3::new(0.999_999, 0.0, 0.001).normalize()] {
+                for h in [-1.0f32, 1.0, 0.0] {
+                    for u in [0.0f32, ulp] {
+                        if let Some(s) = hair.sample(wo, h, u, Vec2::new(u, u)) {
+                            assert!(
+                                s.weight.is_finite() && s.weight.min_element() >= 0.0 && s.wi.is_finite(),
+                                "{s:?}"
+                            );
+                        }
+                    }
+                    for _ in 0..200 {
+                        let wi = random_dir(&mut rng);
+                        let (e, p) = (hair.eval(wo, wi, h), hair.pdf(wo, wi, h));
+                        assert!(e.is_finite() && e.min_element() >= 0.0 && p.is_finite() && p >= 0.0);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn longitudinal_term_is_normalised_even_for_tiny_roughness() {
+        // int Mp(theta_i) cos theta_i dtheta_i = 1 for any theta_o and v, including v = 1e-4
+        // where sinh(1 / v) overflows f32.
+        for v in [1e-4f32, 0.01, 0.1, 0.5, 2.0] {
+            for sin_o in [0.0f32, 0.5, -0.9] {
+                let cos_o = safe_sqrt(1.0 - sin_o * sin_o);
+                let n = 200_000;
+                let mut s = 0.0f64;
+                for k in 0..n {
+                    let t = -PI / 2.0 + PI * (k as f32 + 0.5) / n as f32;
+                    s += (mp(t.cos(), cos_o, t.sin(), sin_o, v) * t.cos()) as f64;
+                }
+                let integral = s * std::f64::consts::PI / n as f64;
+                assert!((integral - 1.0).abs() < 0.01, "v {v} sin_o {sin_o}: {integral}");
+            }
+        }
+    }
+
+    #[test]
+    fn reflectance_maps_to_sigma_a_by_the_papers_polynomial() {
+        // beta_n = 0.3: D = 5.969 - 0.0645 + 0.22788 - 0.28971 + 0.0451494 + 0.00059535.
+        let d = 5.969 - 0.215 * 0.3 + 2.532 * 0.09 - 10.73 * 0.027 + 5.574 * 0.0081 + 0.245 * 0.00243;
+        let s = Hair::sigma_a_from_reflectance(Rgb::new(0.5, 0.25, 0.1), 0.3);
+        for (c, x) in [(0.5f64, s.x), (0.25, s.y), (0.1, s.z)] {
+            let want = (c.ln() / d).powi(2);
+            assert!((x as f64 - want).abs() < 1e-5 * want.max(1e-3), "{x} vs {want}");
+        }
+    }
+}
