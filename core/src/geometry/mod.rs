@@ -2,6 +2,7 @@
 //! and the BVH over all of their primitives.
 
 pub mod bvh;
+pub mod curves;
 pub mod mesh;
 pub mod shapes;
 

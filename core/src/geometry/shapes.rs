@@ -74,6 +74,8 @@ pub enum Geometry {
     Mesh(Mesh),
     Sphere(Sphere),
     Disk(Disk),
+    /// Round fibres (`linearcurve`); one primitive per segment.
+    Curves(super::curves::Curves),
 }
 
 /// A shape placed in the scene, with its material and (optional) area emitter.
@@ -101,6 +103,7 @@ impl Shape {
         match &self.geometry {
             Geometry::Mesh(m) => m.tris.len(),
             Geometry::Sphere(_) | Geometry::Disk(_) => 1,
+            Geometry::Curves(c) => c.segments.len(),
         }
     }
 
@@ -111,6 +114,7 @@ impl Shape {
                 (a.min(b).min(c), a.max(b).max(c))
             }
             Geometry::Sphere(s) => (s.center - s.radius, s.center + s.radius),
+            Geometry::Curves(c) => c.bounds(prim),
             Geometry::Disk(d) => {
                 let mut lo = Vec3::splat(f32::INFINITY);
                 let mut hi = Vec3::splat(f32::NEG_INFINITY);
@@ -134,6 +138,9 @@ impl Shape {
                 intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
             }
             Geometry::Sphere(s) => intersect_sphere(s, ray, tmax).map(|t| (t, Vec2::ZERO)),
+            Geometry::Curves(c) => {
+                c.segments[prim].intersect(ray.o, ray.d, ray.tmin, tmax).map(|h| (h.t, Vec2::new(h.s, 0.0)))
+            }
             Geometry::Disk(d) => {
                 let o = d.to_object.transform_point3(ray.o);
                 let dir = d.to_object.transform_vector3(ray.d);
@@ -157,6 +164,14 @@ impl Shape {
     pub fn interaction(&self, shape: u32, prim: usize, ray: &Ray, t: f32, aux: Vec2) -> Interaction {
         let (p, p_err, mut ng, mut ns, uv, dpdu, dpdv) = match &self.geometry {
             Geometry::Mesh(m) => m.surface(prim, aux.x, aux.y),
+            Geometry::Curves(c) => {
+                let seg = &c.segments[prim];
+                let hit = super::curves::FibreHit { t, s: aux.x, n: Vec3::ZERO };
+                let (p, p_err, uv) = seg.surface(ray.o, ray.d, &hit);
+                let n = seg.normal_at(p);
+                let tangent = seg.tangent();
+                (p, p_err, n, n, uv, tangent, n.cross(tangent))
+            }
             Geometry::Sphere(s) => {
                 let n = (ray.at(t) - s.center).normalize();
                 let p = s.center + n * s.radius;
@@ -206,6 +221,10 @@ impl Shape {
             }
             Geometry::Sphere(s) => 4.0 * std::f64::consts::PI * (s.radius as f64).powi(2),
             Geometry::Disk(d) => d.area as f64,
+            Geometry::Curves(c) => {
+                let s = &c.segments[prim];
+                std::f64::consts::PI * (s.r0 + s.r1) as f64 * (s.p1 - s.p0).length() as f64
+            }
         }
     }
 
@@ -228,6 +247,7 @@ impl Shape {
                 let (p, p_err) = d.point(q.x, q.y);
                 (p, p_err, d.normal, Disk::uv(q))
             }
+            Geometry::Curves(_) => unreachable!("the loader refuses emitters on curves"),
         };
         SurfacePoint { p, p_err, n: if self.flip_normals { -n } else { n }, uv }
     }

@@ -721,6 +721,36 @@ impl Builder<'_> {
                 Geometry::Sphere(Sphere { center: c, radius: r, rot })
             }
             "disk" => Geometry::Disk(Disk::new(to_world)),
+            "linearcurve" | "bsplinecurve" => {
+                let bspline = o.plugin == "bsplinecurve";
+                let rel = doc
+                    .string(i, "filename")?
+                    .ok_or_else(|| self.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
+                let fpos = doc.pos_of(i, "filename");
+                let path = doc.resolve_path(fpos, &rel)?;
+                let text = std::fs::read_to_string(&path)
+                    .map_err(|e| self.err(fpos, format!("cannot read curve file '{rel}': {e}")))?;
+                let mut curves =
+                    crate::geometry::curves::parse_curve_file(&text, if bspline { 4 } else { 2 })
+                        .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+                // to_world moves the points, not the radii (as Mitsuba).
+                for c in &mut curves {
+                    for (p, _) in c.iter_mut() {
+                        *p = to_world.transform_point3(*p);
+                    }
+                }
+                self.assets.push(path);
+                if bspline {
+                    let (c, err) = crate::geometry::curves::Curves::bspline(&curves, BSPLINE_STEPS);
+                    tracing::debug!(
+                        "bsplinecurve '{rel}': {} segments, chord error {err:.3e}",
+                        c.segments.len()
+                    );
+                    Geometry::Curves(c)
+                } else {
+                    Geometry::Curves(crate::geometry::curves::Curves::linear(&curves))
+                }
+            }
             _ => {
                 return Err(self.unsupported_plugin(i, &["obj", "ply", "rectangle", "cube", "sphere", "disk"]))
             }
@@ -748,6 +778,9 @@ impl Builder<'_> {
         match emitters.as_slice() {
             [] => {}
             [(_, e, _)] => {
+                if matches!(shape.geometry, Geometry::Curves(_)) {
+                    return Err(self.err(doc.obj(*e).pos, "curves cannot carry an area emitter"));
+                }
                 if doc.obj(*e).plugin != "area" {
                     return Err(self.err(
                         doc.obj(*e).pos,
@@ -861,6 +894,9 @@ impl Builder<'_> {
         Ok(())
     }
 }
+
+/// Round segments per B-spline span.
+const BSPLINE_STEPS: usize = 8;
 
 /// Indices of refraction of common media (at about 589 nm), under Mitsuba's names.
 const IORS: &[(&str, f32)] = &[
