@@ -33,6 +33,18 @@ fn flip(v: Vec3, s: f32) -> Vec3 {
 }
 
 impl Dielectric {
+    /// The delta mirror reflection of `wo`, chosen with probability `prob`.
+    #[inline]
+    fn mirror(&self, uv: TexCoord, wo: Vec3, prob: f32) -> BsdfSample {
+        BsdfSample {
+            wi: Vec3::new(-wo.x, -wo.y, wo.z),
+            weight: self.specular_reflectance.eval(uv),
+            pdf: prob,
+            delta: true,
+            eta: 1.0,
+        }
+    }
+
     /// Relative index seen from wo's side, and the side's sign.
     #[inline]
     fn side(&self, wo: Vec3) -> (f32, f32) {
@@ -113,13 +125,7 @@ impl Dielectric {
             // Inter-reflections inside the slab: R' = R + T^2 R / (1 - R^2).
             let r2 = if r < 1.0 { r + (1.0 - r) * (1.0 - r) * r / (1.0 - r * r) } else { 1.0 };
             return Some(if u1 < r2 {
-                BsdfSample {
-                    wi: Vec3::new(-wo.x, -wo.y, wo.z),
-                    weight: self.specular_reflectance.eval(uv),
-                    pdf: r2,
-                    delta: true,
-                    eta: 1.0,
-                }
+                self.mirror(uv, wo, r2)
             } else {
                 BsdfSample {
                     wi: -wo,
@@ -133,13 +139,7 @@ impl Dielectric {
         let Some(r) = &self.rough else {
             let (f, cos_t) = fresnel_dielectric(wo_f.z, eta);
             return Some(if u1 < f {
-                BsdfSample {
-                    wi: Vec3::new(-wo.x, -wo.y, wo.z),
-                    weight: self.specular_reflectance.eval(uv),
-                    pdf: f,
-                    delta: true,
-                    eta: 1.0,
-                }
+                self.mirror(uv, wo, f)
             } else {
                 let t = refract(wo_f, Vec3::Z, eta, cos_t);
                 BsdfSample {

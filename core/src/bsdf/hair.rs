@@ -131,28 +131,30 @@ impl Hair {
         (sin, safe_sqrt(1.0 - sin * sin), w.z.atan2(w.y))
     }
 
-    /// f |cos| summed over lobes (`weights` = A_p) or the pdf (`weights` = lobe probabilities).
+    /// f |cos| summed over lobes (`weights` = A_p) or the pdf (`weights` = lobe probabilities),
+    /// `weights` mapping the attenuations to one weight per lobe, once per call.
     fn lobes<T: Copy + std::ops::Mul<f32, Output = T> + std::ops::Add<Output = T>>(
         &self,
         wo: Vec3,
         wi: Vec3,
         h: f32,
         zero: T,
-        weights: impl Fn(&[Rgb; P_MAX + 1], usize) -> T,
+        weights: impl FnOnce(&[Rgb; P_MAX + 1]) -> [T; P_MAX + 1],
     ) -> T {
         let (sin_o, cos_o, phi_o) = Self::angles(wo);
         let (sin_i, cos_i, phi_i) = Self::angles(wi);
         let (a, gamma_o, gamma_t) = self.attenuation(sin_o, cos_o, h);
+        let w = weights(&a);
         let phi = phi_i - phi_o;
         let mut sum = zero;
-        for p in 0..P_MAX {
+        for (p, &wp) in w.iter().enumerate().take(P_MAX) {
             let (so, co) = self.tilt(p, sin_o, cos_o);
             let m = mp(cos_i, co, sin_i, so, self.v[p]);
             let n = np(phi, p, self.s, gamma_o, gamma_t);
-            sum = sum + weights(&a, p) * (m * n);
+            sum = sum + wp * (m * n);
         }
         let m = mp(cos_i, cos_o, sin_i, sin_o, self.v[P_MAX]);
-        sum + weights(&a, P_MAX) * (m / (2.0 * PI))
+        sum + w[P_MAX] * (m / (2.0 * PI))
     }
 
     /// The offset across the fibre implied by `wo` and the normal: for a round fibre the
@@ -167,7 +169,7 @@ impl Hair {
     }
 
     pub fn eval(&self, wo: Vec3, wi: Vec3, h: f32) -> Rgb {
-        let r = self.lobes(wo, wi, h, Rgb::ZERO, |a, p| a[p]);
+        let r = self.lobes(wo, wi, h, Rgb::ZERO, |a| *a);
         if r.is_finite() {
             r.max(Rgb::ZERO)
         } else {
@@ -176,7 +178,7 @@ impl Hair {
     }
 
     pub fn pdf(&self, wo: Vec3, wi: Vec3, h: f32) -> f32 {
-        let r = self.lobes(wo, wi, h, 0.0f32, |a, p| Self::lobe_pdf(a)[p]);
+        let r = self.lobes(wo, wi, h, 0.0f32, Self::lobe_pdf);
         if r.is_finite() {
             r.max(0.0)
         } else {

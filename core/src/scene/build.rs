@@ -344,29 +344,23 @@ impl Builder<'_> {
                     doc.string(i, "filename")?.ok_or_else(|| self.err(o.pos, "bitmap needs a 'filename'"))?;
                 let path = doc.resolve_path(doc.pos_of(i, "filename"), &rel)?;
                 let raw = doc.boolean_or(i, "raw", false)?;
-                let filter = match doc.string(i, "filter_type")?.as_deref() {
-                    None | Some("bilinear") => FilterType::Bilinear,
-                    Some("nearest") => FilterType::Nearest,
-                    Some("trilinear") => FilterType::Trilinear,
-                    Some("ewa") => FilterType::Ewa,
-                    Some(other) => {
-                        return Err(self.err(
-                            doc.pos_of(i, "filter_type"),
-                            format!(
-                            "unknown filter_type '{other}' (expected bilinear, nearest, trilinear or ewa)"
-                        ),
-                        ))
-                    }
-                };
-                let wrap = match doc.string(i, "wrap_mode")? {
-                    None => WrapMode::Repeat,
-                    Some(w) => WrapMode::parse(&w).ok_or_else(|| {
-                        self.err(
-                            doc.pos_of(i, "wrap_mode"),
-                            format!("unknown wrap_mode '{w}' (expected repeat, mirror or clamp)"),
-                        )
-                    })?,
-                };
+                let filter = self.choice(
+                    i,
+                    "filter_type",
+                    FilterType::Bilinear,
+                    &[
+                        ("bilinear", FilterType::Bilinear),
+                        ("nearest", FilterType::Nearest),
+                        ("trilinear", FilterType::Trilinear),
+                        ("ewa", FilterType::Ewa),
+                    ],
+                )?;
+                let wrap = self.choice(
+                    i,
+                    "wrap_mode",
+                    WrapMode::Repeat,
+                    &[("repeat", WrapMode::Repeat), ("mirror", WrapMode::Mirror), ("clamp", WrapMode::Clamp)],
+                )?;
                 let to_uv = to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY));
                 let key = (path.clone(), raw);
                 let bitmap = match self.bitmaps.get(&key) {
@@ -530,6 +524,18 @@ impl Builder<'_> {
         })
     }
 
+    /// A string parameter naming one of `choices` (`default` when absent).
+    fn choice<T: Copy>(&self, i: usize, name: &str, default: T, choices: &[(&str, T)]) -> R<T> {
+        let Some(v) = self.doc.string(i, name)? else { return Ok(default) };
+        choices.iter().find(|(n, _)| *n == v).map(|(_, t)| *t).ok_or_else(|| {
+            let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
+            self.err(
+                self.doc.pos_of(i, name),
+                format!("unknown {name} '{v}' (expected one of: {})", names.join(", ")),
+            )
+        })
+    }
+
     /// A colour parameter that must be constant.
     fn const_color(&mut self, i: usize, name: &str, default: Rgb) -> R<Rgb> {
         match self.color(i, name, default)? {
@@ -574,16 +580,12 @@ impl Builder<'_> {
         if !doc.obj(i).plugin.starts_with("rough") {
             return Ok(None);
         }
-        let dist = match doc.string(i, "distribution")?.as_deref() {
-            None | Some("beckmann") => Distribution::Beckmann,
-            Some("ggx") => Distribution::Ggx,
-            Some(other) => {
-                return Err(self.err(
-                    doc.pos_of(i, "distribution"),
-                    format!("unknown distribution '{other}' (expected beckmann or ggx)"),
-                ))
-            }
-        };
+        let dist = self.choice(
+            i,
+            "distribution",
+            Distribution::Beckmann,
+            &[("beckmann", Distribution::Beckmann), ("ggx", Distribution::Ggx)],
+        )?;
         if !doc.boolean_or(i, "sample_visible", true)? && dist == Distribution::Ggx {
             return Err(self.err(
                 doc.pos_of(i, "sample_visible"),
@@ -825,16 +827,12 @@ impl Builder<'_> {
                 let path = doc.resolve_path(fpos, &rel)?;
                 let scale = self.nonneg_float(i, "scale", 1.0)?;
                 let to_world = self.rotation(i)?;
-                let filter = match doc.string(i, "filter_type")?.as_deref() {
-                    None | Some("bilinear") => FilterType::Bilinear,
-                    Some("nearest") => FilterType::Nearest,
-                    Some(o) => {
-                        return Err(self.err(
-                            doc.pos_of(i, "filter_type"),
-                            format!("unknown filter_type '{o}' (expected bilinear or nearest)"),
-                        ))
-                    }
-                };
+                let filter = self.choice(
+                    i,
+                    "filter_type",
+                    FilterType::Bilinear,
+                    &[("bilinear", FilterType::Bilinear), ("nearest", FilterType::Nearest)],
+                )?;
                 if doc.boolean_or(i, "mis_compensation", false)? {
                     return Err(
                         self.err(doc.pos_of(i, "mis_compensation"), "mis_compensation is not supported")

@@ -24,15 +24,6 @@ pub enum WrapMode {
 }
 
 impl WrapMode {
-    pub fn parse(s: &str) -> Option<WrapMode> {
-        match s {
-            "repeat" => Some(WrapMode::Repeat),
-            "mirror" => Some(WrapMode::Mirror),
-            "clamp" => Some(WrapMode::Clamp),
-            _ => None,
-        }
-    }
-
     /// Index `i` of a row or column of `n` texels, wrapped.
     #[inline]
     pub fn apply(self, i: i64, n: i64) -> usize {
