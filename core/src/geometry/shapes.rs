@@ -138,9 +138,9 @@ impl Shape {
                 intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
             }
             Geometry::Sphere(s) => intersect_sphere(s, ray, tmax).map(|t| (t, Vec2::ZERO)),
-            Geometry::Curves(c) => {
-                c.segments[prim].intersect(ray.o, ray.d, ray.tmin, tmax).map(|h| (h.t, Vec2::new(h.s, 0.0)))
-            }
+            Geometry::Curves(c) => c
+                .intersect(prim, ray.o, ray.d, ray.tmin, tmax)
+                .map(|h| (h.t, Vec2::new(h.s, h.piece as u32 as f32))),
             Geometry::Disk(d) => {
                 let o = d.to_object.transform_point3(ray.o);
                 let dir = d.to_object.transform_vector3(ray.d);
@@ -166,9 +166,10 @@ impl Shape {
             Geometry::Mesh(m) => m.surface(prim, aux.x, aux.y),
             Geometry::Curves(c) => {
                 let seg = &c.segments[prim];
-                let hit = super::curves::FibreHit { t, s: aux.x, n: Vec3::ZERO };
+                let piece = super::curves::Piece::from_index(aux.y as u32);
+                let hit = super::curves::FibreHit { t, s: aux.x, piece };
                 let (p, p_err, uv) = seg.surface(ray.o, ray.d, &hit);
-                let n = seg.normal_at(p);
+                let n = seg.normal(piece, p);
                 let tangent = seg.tangent();
                 (p, p_err, n, n, uv, tangent, n.cross(tangent))
             }
