@@ -46,8 +46,51 @@ pub enum CurveError {
 }
 
 /// Parses Mitsuba's curve text format: one control point per line, a blank line between
-/// curves, no comments. Returns the curves' control points (position, radius).
+/// curves, no comments. Returns the curves' control points (position, radius). Large files
+/// are cut at blank lines into pieces parsed in parallel; errors name the file's line.
 pub fn parse_curve_file(text: &str, min_points: usize) -> Result<Vec<Vec<(Vec3, f32)>>, CurveError> {
+    use rayon::prelude::*;
+    const PIECE: usize = 1 << 20;
+    // Piece boundaries: just after a blank line, about every PIECE bytes.
+    let bytes = text.as_bytes();
+    let mut cuts = vec![0usize];
+    let mut at = PIECE;
+    while at < bytes.len() {
+        match text[at..].find("\n\n") {
+            Some(k) => {
+                let cut = at + k + 2;
+                cuts.push(cut);
+                at = cut + PIECE;
+            }
+            None => break,
+        }
+    }
+    cuts.push(bytes.len());
+    // First line number of each piece.
+    let pieces: Vec<(usize, &str)> = {
+        let mut line = 1;
+        cuts.windows(2)
+            .map(|w| {
+                let piece = &text[w[0]..w[1]];
+                let first = line;
+                line += piece.bytes().filter(|&c| c == b'\n').count();
+                (first, piece)
+            })
+            .collect()
+    };
+    let parsed: Vec<Vec<Vec<(Vec3, f32)>>> = pieces
+        .par_iter()
+        .map(|&(first, piece)| parse_piece(piece, first, min_points))
+        .collect::<Result<_, _>>()?;
+    let curves: Vec<Vec<(Vec3, f32)>> = parsed.into_iter().flatten().collect();
+    if curves.is_empty() {
+        return Err(CurveError::Empty);
+    }
+    Ok(curves)
+}
+
+/// Parses whole curves from `text`, whose first line is line `first` of the file.
+fn parse_piece(text: &str, first: usize, min_points: usize) -> Result<Vec<Vec<(Vec3, f32)>>, CurveError> {
     let mut curves = Vec::new();
     let mut current: Vec<(Vec3, f32)> = Vec::new();
     let finish = |current: &mut Vec<(Vec3, f32)>, line: usize, curves: &mut Vec<Vec<(Vec3, f32)>>| {
@@ -60,21 +103,26 @@ pub fn parse_curve_file(text: &str, min_points: usize) -> Result<Vec<Vec<(Vec3, 
         curves.push(std::mem::take(current));
         Ok(())
     };
-    let mut last = 0;
+    let mut last = first;
     for (k, raw) in text.lines().enumerate() {
-        let line = k + 1;
+        let line = first + k;
         last = line;
         let t = raw.trim();
         if t.is_empty() {
             finish(&mut current, line, &mut curves)?;
             continue;
         }
-        let v: Vec<f32> = t
-            .split_whitespace()
-            .map(|s| s.parse::<f32>())
-            .collect::<Result<_, _>>()
-            .map_err(|_| CurveError::Parse { line, text: t.to_string() })?;
-        if v.len() != 4 || !v.iter().all(|x| x.is_finite()) {
+        let mut v = [0.0f32; 4];
+        let mut n = 0;
+        for word in t.split_ascii_whitespace() {
+            let x = word.parse::<f32>().ok().filter(|x| x.is_finite());
+            match (n < 4, x) {
+                (true, Some(x)) => v[n] = x,
+                _ => return Err(CurveError::Parse { line, text: t.to_string() }),
+            }
+            n += 1;
+        }
+        if n != 4 {
             return Err(CurveError::Parse { line, text: t.to_string() });
         }
         if !(v[3] > 0.0) {
@@ -83,16 +131,13 @@ pub fn parse_curve_file(text: &str, min_points: usize) -> Result<Vec<Vec<(Vec3, 
         current.push((Vec3::new(v[0], v[1], v[2]), v[3]));
     }
     finish(&mut current, last, &mut curves)?;
-    if curves.is_empty() {
-        return Err(CurveError::Empty);
-    }
     Ok(curves)
 }
 
 impl Curves {
     /// Linear curves through the control points (already in world space).
     pub fn linear(curves: &[Vec<(Vec3, f32)>]) -> Curves {
-        let mut segments = Vec::new();
+        let mut segments = Vec::with_capacity(curves.iter().map(|c| c.len() - 1).sum());
         for c in curves {
             let n = c.len() - 1;
             for i in 0..n {
@@ -109,6 +154,7 @@ impl Curves {
     /// curves and the largest distance between a segment and the spline it replaces (measured
     /// at each segment's midpoint, where the chord is farthest from the arc).
     pub fn bspline(curves: &[Vec<(Vec3, f32)>], steps: usize) -> (Curves, f32) {
+        use rayon::prelude::*;
         let eval = |c: &[(Vec3, f32)], i: usize, t: f32| -> (Vec3, f32) {
             let (t2, t3) = (t * t, t * t * t);
             let w = [
@@ -125,25 +171,46 @@ impl Curves {
             }
             (p, r)
         };
-        let mut points = Vec::with_capacity(curves.len());
-        let mut max_err = 0.0f32;
-        for c in curves {
+        // Tessellated points of one curve, and its largest chord error.
+        let tessellate = |c: &Vec<(Vec3, f32)>| -> (Vec<(Vec3, f32)>, f32) {
             let spans = c.len() - 3;
             let mut pts = Vec::with_capacity(spans * steps + 1);
+            let mut err = 0.0f32;
             for i in 0..spans {
                 for j in 0..steps {
-                    let t = j as f32 / steps as f32;
-                    pts.push(eval(c, i, t));
-                    let (a, b) = (eval(c, i, t).0, eval(c, i, (j + 1) as f32 / steps as f32).0);
+                    let a = eval(c, i, j as f32 / steps as f32);
+                    let b = eval(c, i, (j + 1) as f32 / steps as f32).0;
                     let mid = eval(c, i, (j as f32 + 0.5) / steps as f32).0;
-                    max_err = max_err.max((mid - (a + b) * 0.5).length());
+                    err = err.max((mid - (a.0 + b) * 0.5).length());
+                    pts.push(a);
                 }
             }
             pts.push(eval(c, spans - 1, 1.0));
-            points.push(pts);
+            (pts, err)
+        };
+        // In chunks of curves, so that parallel work stays coarse.
+        let parts: Vec<(Curves, f32)> = curves
+            .par_chunks(4096)
+            .map(|chunk| {
+                let mut max_err = 0.0f32;
+                let points: Vec<Vec<(Vec3, f32)>> = chunk
+                    .iter()
+                    .map(|c| {
+                        let (pts, err) = tessellate(c);
+                        max_err = max_err.max(err);
+                        pts
+                    })
+                    .collect();
+                (Curves::linear(&points), max_err)
+            })
+            .collect();
+        let total = parts.iter().map(|(c, _)| c.segments.len()).sum();
+        let mut out = Curves { segments: Vec::with_capacity(total), curve_count: curves.len() };
+        let mut max_err = 0.0f32;
+        for (c, err) in parts {
+            out.segments.extend_from_slice(&c.segments);
+            max_err = max_err.max(err);
         }
-        let mut out = Curves::linear(&points);
-        out.curve_count = curves.len();
         (out, max_err)
     }
 

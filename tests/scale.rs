@@ -1,0 +1,150 @@
+//! Fur at scale: loading B-spline fibres and building the BVH, timed and weighed. The million-
+//! fibre run is `--ignored` (about 10 s in release on 2 cores, see docs/BENCHMARKS.md); the
+//! normal run checks the same memory bound on 100,000 fibres.
+
+mod common;
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::io::Write;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use common::scratch;
+use furnace_core::geometry::Geometry;
+
+/// Counts live heap bytes and their peak, so the test can weigh what a scene holds.
+struct Counting;
+
+static LIVE: AtomicUsize = AtomicUsize::new(0);
+static PEAK: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc(layout) };
+        if !p.is_null() {
+            let now = LIVE.fetch_add(layout.size(), Ordering::Relaxed) + layout.size();
+            PEAK.fetch_max(now, Ordering::Relaxed);
+        }
+        p
+    }
+    // Zeroed and resized blocks go to the system allocator's own calls (calloc hands out
+    // fresh pages untouched; the default would memset them), so the count costs no time.
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc_zeroed(layout) };
+        if !p.is_null() {
+            let now = LIVE.fetch_add(layout.size(), Ordering::Relaxed) + layout.size();
+            PEAK.fetch_max(now, Ordering::Relaxed);
+        }
+        p
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let p = unsafe { System.realloc(ptr, layout, new_size) };
+        if !p.is_null() {
+            LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+            let now = LIVE.fetch_add(new_size, Ordering::Relaxed) + new_size;
+            PEAK.fetch_max(now, Ordering::Relaxed);
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) };
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+    }
+}
+
+#[global_allocator]
+static ALLOC: Counting = Counting;
+
+/// Writes `fibres` B-spline fibres of 4 control points (one span, so 8 segments each) growing
+/// out of a unit sphere, with tapering radii, and a scene that shows them.
+fn write_fur(fibres: usize, tag: &str) -> std::path::PathBuf {
+    let dir = scratch(tag);
+    let mut f = std::io::BufWriter::new(std::fs::File::create(dir.join("fur.txt")).unwrap());
+    let mut state = 0x853c49e6748fea9bu64;
+    let mut next = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((state >> 40) as f32) / (1u64 << 24) as f32
+    };
+    for _ in 0..fibres {
+        let z = 2.0 * next() - 1.0;
+        let phi = 2.0 * std::f32::consts::PI * next();
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let n = [r * phi.cos(), r * phi.sin(), z];
+        let bend = [next() - 0.5, next() - 0.5, next() - 0.5];
+        for k in 0..4 {
+            let t = k as f32 / 3.0;
+            let p: Vec<f32> = (0..3).map(|i| n[i] * (1.0 + 0.3 * t) + bend[i] * 0.1 * t * t).collect();
+            writeln!(f, "{} {} {} {}", p[0], p[1], p[2], 0.004 * (1.0 - 0.7 * t)).unwrap();
+        }
+        writeln!(f).unwrap();
+    }
+    f.flush().unwrap();
+    std::fs::write(
+        dir.join("fur.xml"),
+        r#"<scene version="3.0.0">
+            <sensor type="perspective"><float name="fov" value="40"/><transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+                <film type="hdrfilm"><integer name="width" value="64"/><integer name="height" value="64"/></film></sensor>
+            <emitter type="constant"/>
+            <shape type="bsplinecurve"><string name="filename" value="fur.txt"/><bsdf type="hair"/></shape>
+        </scene>"#,
+    )
+    .unwrap();
+    dir
+}
+
+/// Loads the fur scene; returns (segments, seconds, bytes held per segment, peak bytes per
+/// segment), heap bytes counted from before the load.
+fn load_fur(fibres: usize, tag: &str) -> (usize, f64, f64, f64) {
+    // One weighing at a time: the heap counters are process-wide.
+    static ONE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one = ONE.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = write_fur(fibres, tag);
+    let before = LIVE.load(Ordering::Relaxed);
+    PEAK.store(before, Ordering::Relaxed);
+    let t = Instant::now();
+    let scene = furnace_core::Scene::load(&dir.join("fur.xml"), &[]).unwrap_or_else(|e| panic!("{e}"));
+    let secs = t.elapsed().as_secs_f64();
+    let held = LIVE.load(Ordering::Relaxed) - before;
+    let peak = PEAK.load(Ordering::Relaxed) - before;
+    let segments: usize = scene
+        .shapes
+        .iter()
+        .map(|s| match &s.geometry {
+            Geometry::Curves(c) => c.segments.len(),
+            _ => 0,
+        })
+        .sum();
+    assert_eq!(segments, fibres * 8);
+    // The scene can be intersected: a ray at the sphere's centre hits fur.
+    let ray = scene.camera.ray_pinhole(glam::Vec2::new(32.0, 32.0));
+    assert!(scene.intersect(&ray).is_some());
+    drop(scene);
+    std::fs::remove_dir_all(&dir).ok();
+    let n = segments as f64;
+    eprintln!(
+        "{fibres} fibres, {segments} segments: load + BVH {secs:.2} s, {:.1} bytes/segment held, {:.1} peak",
+        held as f64 / n,
+        peak as f64 / n
+    );
+    (segments, secs, held as f64 / n, peak as f64 / n)
+}
+
+/// 100,000 fibres x 8 segments: the loaded scene (segments, BVH and everything else) holds
+/// under 64 bytes per segment.
+#[test]
+fn fur_holds_under_64_bytes_per_segment() {
+    let (_, _, held, _) = load_fur(100_000, "fur100k");
+    assert!(held < 64.0, "{held} bytes per segment");
+}
+
+/// The issue's scale: 1,000,000 fibres x 8 segments hold under 64 bytes per segment and load
+/// and build in under 10 s on 2 cores (release build: 9.2 to 9.6 s here, right after writing
+/// the file; 7.1 s through `furnace render`; docs/BENCHMARKS.md). The bound, 12 s, leaves
+/// room for a noisy machine.
+#[test]
+#[ignore]
+fn a_million_fibres_load_in_about_10_seconds() {
+    let (_, secs, held, _) = load_fur(1_000_000, "fur1m");
+    assert!(held < 64.0, "{held} bytes per segment");
+    assert!(secs < 12.0, "{secs} s");
+}
