@@ -435,21 +435,23 @@ impl Segment {
     }
 }
 
-/// Real roots of a t^2 + b t + c, ascending (numerically stable form).
-fn solve_quadratic(a: f64, b: f64, c: f64) -> Vec<f64> {
+/// Real roots of a t^2 + b t + c, ascending (numerically stable form), without allocating:
+/// the roots that do not exist come back as NaN, which no range test accepts.
+fn solve_quadratic(a: f64, b: f64, c: f64) -> [f64; 2] {
     if a.abs() < 1e-300 {
-        return if b.abs() > 1e-300 { vec![-c / b] } else { vec![] };
+        return [if b.abs() > 1e-300 { -c / b } else { f64::NAN }, f64::NAN];
     }
     let disc = b * b - 4.0 * a * c;
     if disc < 0.0 {
-        return vec![];
+        return [f64::NAN; 2];
     }
     let q = -0.5 * (b + disc.sqrt().copysign(b));
-    let (mut t0, mut t1) = (q / a, if q != 0.0 { c / q } else { q / a });
-    if t0 > t1 {
-        std::mem::swap(&mut t0, &mut t1);
+    let (t0, t1) = (q / a, if q != 0.0 { c / q } else { q / a });
+    if t0 <= t1 {
+        [t0, t1]
+    } else {
+        [t1, t0]
     }
-    vec![t0, t1]
 }
 
 #[cfg(test)]
