@@ -387,6 +387,10 @@ mod tests {
         }
     }
 
+    /// Chi-square of sampled directions against the pdf (100,000 samples, 16 x 32 grid over
+    /// the sphere, Sidak-corrected 1% level over 9 cases): beta_m = beta_n in {0.1, 0.3, 0.7}
+    /// (and beta_n 0.5) x incident (sin theta_o, h) in {(0, 0.2), (0.9, -0.6), (-0.99, 0.95)},
+    /// sigma_a 0.2; the pdf integrates to 1 within 1%.
     #[test]
     fn sampled_directions_follow_the_pdf() {
         let cases: Vec<(f32, f32, f32, f32)> = [0.1f32, 0.3, 0.7]
