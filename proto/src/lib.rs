@@ -1,12 +1,23 @@
-//! What crosses the wire between Furnace's coordinator and workers. Serde types plus pure
-//! functions, no I/O.
+//! What crosses the wire between Furnace's coordinator, workers and clients: serde types and
+//! pure functions. Everything is versioned under [`API`].
 //!
-//! So far: job settings and the chunk plan, a pure function of the settings (every tile crossed
-//! with every sample range, pass by pass). Leases, progress and the partial-accumulation
-//! encoding join when the farm protocol does.
+//! - [`JobSettings`] and [`chunk_plan`]: the plan is a pure function of the settings.
+//! - [`Bundle`]: a scene and its assets by content hash; [`JobSpec`] what a client submits.
+//! - [`Lease`], [`Heartbeat`], [`JobStatus`], [`ApiError`]: the JSON of the HTTP API.
+//! - [`encode_partial`] / [`decode_partial`]: a chunk's partial accumulation as an EXR with
+//!   named integer channels and the tile position as the EXR data window, zstd on the wire.
 
+use std::collections::BTreeMap;
+
+use furnace_core::film::PixelSum;
 pub use furnace_core::Region;
 use serde::{Deserialize, Serialize};
+
+mod partial;
+pub use partial::{decode_partial, encode_partial, PartialError};
+
+/// The API's path prefix.
+pub const API: &str = "/v1";
 
 /// The render settings of a job (DESIGN.md defaults: 1920 x 1080 at 4096 spp, 64-pixel tiles,
 /// 64 spp per chunk).
@@ -53,6 +64,147 @@ pub fn chunk_plan(s: &JobSettings) -> Vec<ChunkSpec> {
         .enumerate()
         .map(|(id, region)| ChunkSpec { id: id as u32, region })
         .collect()
+}
+
+/// A scene bundle: the scene file's path and every file it needs (the scene too), by relative
+/// path, each named by the BLAKE3 hash (hex) of its bytes.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Bundle {
+    pub scene: String,
+    pub files: BTreeMap<String, String>,
+}
+
+impl Bundle {
+    /// The bundle's own hash: BLAKE3 of its canonical JSON (files sorted by path).
+    pub fn hash(&self) -> String {
+        let json = serde_json::to_vec(self).expect("a bundle serialises");
+        blake3::hash(&json).to_hex().to_string()
+    }
+
+    /// Checks that every path is relative, stays inside the bundle, and that the scene is one
+    /// of the files; every hash is 64 hex digits.
+    pub fn validate(&self) -> Result<(), String> {
+        if !self.files.contains_key(&self.scene) {
+            return Err(format!("the scene file '{}' is not among the bundle's files", self.scene));
+        }
+        for (path, hash) in &self.files {
+            let bad = path.is_empty()
+                || path.starts_with('/')
+                || path.contains('\\')
+                || path.contains(':')
+                || path.split('/').any(|c| c.is_empty() || c == "." || c == "..");
+            if bad {
+                return Err(format!(
+                    "bundle path '{path}' must be relative, with no '.', '..' or empty parts"
+                ));
+            }
+            if !is_hash(hash) {
+                return Err(format!("bundle file '{path}': '{hash}' is not a BLAKE3 hex hash"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Whether `s` looks like a BLAKE3 hash in hex (64 lowercase hex digits).
+pub fn is_hash(s: &str) -> bool {
+    s.len() == 64 && s.bytes().all(|c| c.is_ascii_digit() || (b'a'..=b'f').contains(&c))
+}
+
+/// What a client submits: a bundle (its files uploaded first) and settings. Width, height and
+/// spp of 0 take the scene's own.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobSpec {
+    pub bundle: Bundle,
+    #[serde(default)]
+    pub settings: JobSettings,
+}
+
+/// A worker asking for work.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LeaseRequest {
+    pub worker: String,
+}
+
+/// A chunk leased to a worker until `deadline_ms` (milliseconds from now when granted) unless
+/// it heartbeats. Uploads and heartbeats carry the epoch; a requeued chunk gets a higher one.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Lease {
+    pub job: String,
+    pub chunk: ChunkSpec,
+    pub epoch: u64,
+    pub settings: JobSettings,
+    pub bundle_hash: String,
+    pub deadline_ms: u64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Heartbeat {
+    pub epoch: u64,
+}
+
+/// Every refusal: a 4xx with this body.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ApiError {
+    pub error: String,
+}
+
+/// Job states.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobState {
+    Queued,
+    Running,
+    Paused,
+    Done,
+    Cancelled,
+}
+
+/// `GET /v1/jobs/{id}`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JobStatus {
+    pub id: String,
+    pub state: JobState,
+    pub settings: JobSettings,
+    pub chunks_total: u64,
+    pub chunks_done: u64,
+    pub chunks_leased: u64,
+    pub chunks_pending: u64,
+    pub samples_done: u64,
+    pub samples_total: u64,
+    pub samples_per_second: f64,
+    pub eta_seconds: Option<f64>,
+    pub workers: Vec<String>,
+    pub errors: Vec<String>,
+    pub plan: String,
+}
+
+/// The words of a pixel's sums, in channel order: R, G, B, weight, lum2 as four 32-bit words
+/// each (two's complement, least significant first), then the count as two.
+pub(crate) const WORDS: usize = 5 * 4 + 2;
+
+pub(crate) fn pixel_words(p: &PixelSum) -> [u32; WORDS] {
+    let mut w = [0u32; WORDS];
+    for (q, v) in [p.rgb[0], p.rgb[1], p.rgb[2], p.weight, p.lum2].into_iter().enumerate() {
+        let u = v as u128;
+        for k in 0..4 {
+            w[q * 4 + k] = (u >> (32 * k)) as u32;
+        }
+    }
+    w[20] = p.count as u32;
+    w[21] = (p.count >> 32) as u32;
+    w
+}
+
+pub(crate) fn pixel_from_words(w: &[u32; WORDS]) -> PixelSum {
+    let q = |i: usize| -> i128 {
+        let mut u = 0u128;
+        for k in 0..4 {
+            u |= (w[i * 4 + k] as u128) << (32 * k);
+        }
+        u as i128
+    };
+    PixelSum { rgb: [q(0), q(1), q(2)], weight: q(3), lum2: q(4), count: w[20] as u64 | (w[21] as u64) << 32 }
 }
 
 #[cfg(test)]

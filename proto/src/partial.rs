@@ -1,0 +1,170 @@
+//! A chunk's partial accumulation on the wire: an OpenEXR image whose channels are the integer
+//! words of the fixed-point sums (so nothing is rounded), whose data window is the tile's
+//! rectangle (tile plus filter margin) in image pixels, compressed with zstd.
+//!
+//! Channels (all 32-bit unsigned, sorted by name as EXR stores them): `R.0`..`R.3`, `G.*`,
+//! `B.*` (filter-weighted radiance sums), `W.*` (weight sums), `L2.*` (sums of squared
+//! luminance), each four words of a two's-complement 128-bit integer, least significant first;
+//! `N.0`, `N.1` (sample count, 64 bits). Custom header attributes: none; EXR carries no
+//! timestamps or host names, so equal accumulations encode to equal bytes.
+
+use std::io::Cursor;
+
+use exr::prelude::*;
+use furnace_core::Accum;
+
+use crate::{pixel_from_words, pixel_words, WORDS};
+
+const QUANTITIES: [&str; 5] = ["R", "G", "B", "W", "L2"];
+
+#[derive(Debug, thiserror::Error)]
+pub enum PartialError {
+    #[error("partial is not zstd data: {0}")]
+    Zstd(std::io::Error),
+    #[error("partial is larger than {0} bytes once decompressed")]
+    TooLarge(usize),
+    #[error("partial is not a readable EXR: {0}")]
+    Exr(String),
+    #[error("partial EXR must have one layer with channels {expected}; found {found}")]
+    Channels { expected: String, found: String },
+    #[error("partial channel '{0}' must hold 32-bit unsigned integers")]
+    ChannelType(String),
+}
+
+fn channel_names() -> Vec<String> {
+    let mut names: Vec<String> =
+        QUANTITIES.iter().flat_map(|q| (0..4).map(move |k| format!("{q}.{k}"))).collect();
+    names.push("N.0".into());
+    names.push("N.1".into());
+    names
+}
+
+/// Encodes `acc` (zstd level 1 over an uncompressed EXR).
+pub fn encode_partial(acc: &Accum) -> Vec<u8> {
+    let names = channel_names();
+    let mut planes: Vec<Vec<u32>> = vec![Vec::with_capacity(acc.pixels.len()); WORDS];
+    for p in &acc.pixels {
+        for (plane, w) in planes.iter_mut().zip(pixel_words(p)) {
+            plane.push(w);
+        }
+    }
+    let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
+        names.iter().zip(planes).map(|(n, v)| AnyChannel::new(n.as_str(), FlatSamples::U32(v))).collect();
+    let attributes = LayerAttributes {
+        layer_position: Vec2(acc.x0 as i32, acc.y0 as i32),
+        ..LayerAttributes::named("partial")
+    };
+    let layer = Layer::new(
+        (acc.width as usize, acc.height as usize),
+        attributes,
+        Encoding::UNCOMPRESSED,
+        AnyChannels::sort(channels),
+    );
+    let mut exr = Vec::new();
+    Image::from_layer(layer)
+        .write()
+        .non_parallel()
+        .to_buffered(Cursor::new(&mut exr))
+        .expect("writing an EXR to memory cannot fail");
+    zstd::bulk::compress(&exr, 1).expect("zstd compresses to memory")
+}
+
+/// Decodes a partial, refusing anything that is not exactly the format above or that would
+/// decompress past `max_bytes`.
+pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Accum, PartialError> {
+    let exr = zstd::bulk::decompress(bytes, max_bytes).map_err(|e| {
+        if e.to_string().contains("too small") || e.to_string().contains("Destination buffer") {
+            PartialError::TooLarge(max_bytes)
+        } else {
+            PartialError::Zstd(e)
+        }
+    })?;
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .non_parallel()
+        .from_buffered(Cursor::new(exr))
+        .map_err(|e| PartialError::Exr(e.to_string()))?;
+    let names = channel_names();
+    let mut sorted = names.clone();
+    sorted.sort();
+    let [layer] = image.layer_data.as_slice() else {
+        return Err(PartialError::Channels {
+            expected: sorted.join(", "),
+            found: format!("{} layers", image.layer_data.len()),
+        });
+    };
+    let found: Vec<String> = layer.channel_data.list.iter().map(|c| c.name.to_string()).collect();
+    if found != sorted {
+        return Err(PartialError::Channels { expected: sorted.join(", "), found: found.join(", ") });
+    }
+    let size = layer.size;
+    let pos = layer.attributes.layer_position;
+    if pos.0 < 0 || pos.1 < 0 {
+        return Err(PartialError::Exr(format!("negative tile position {}, {}", pos.0, pos.1)));
+    }
+    let mut planes: Vec<&[u32]> = Vec::with_capacity(WORDS);
+    for n in &names {
+        let c = layer.channel_data.list.iter().find(|c| c.name.to_string() == *n).expect("checked above");
+        match &c.sample_data {
+            FlatSamples::U32(v) => planes.push(v),
+            _ => return Err(PartialError::ChannelType(n.clone())),
+        }
+    }
+    let count = size.0 * size.1;
+    let mut acc = Accum::new(pos.0 as u32, pos.1 as u32, size.0 as u32, size.1 as u32);
+    for i in 0..count {
+        let mut w = [0u32; WORDS];
+        for (k, plane) in planes.iter().enumerate() {
+            w[k] = plane[i];
+        }
+        acc.pixels[i] = pixel_from_words(&w);
+    }
+    Ok(acc)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use furnace_core::film::PixelSum;
+
+    #[test]
+    fn partials_round_trip_exactly_and_encode_deterministically() {
+        let mut acc = Accum::new(64, 128, 3, 2);
+        for (i, p) in acc.pixels.iter_mut().enumerate() {
+            *p = PixelSum {
+                rgb: [i as i128 * 1_000_000_007, -(1i128 << 100) + i as i128, i128::MAX - i as i128],
+                weight: 1i128 << 70,
+                lum2: -5,
+                count: u64::MAX - i as u64,
+            };
+        }
+        let bytes = encode_partial(&acc);
+        assert_eq!(bytes, encode_partial(&acc), "same accumulation, same bytes");
+        let back = decode_partial(&bytes, 1 << 20).unwrap();
+        assert!(back == acc);
+    }
+
+    #[test]
+    fn garbage_and_foreign_exrs_are_refused() {
+        assert!(matches!(decode_partial(b"not zstd at all", 1 << 20), Err(PartialError::Zstd(_))));
+        let not_exr = zstd::bulk::compress(b"hello", 1).unwrap();
+        assert!(matches!(decode_partial(&not_exr, 1 << 20), Err(PartialError::Exr(_))));
+        // An RGB float EXR full of NaN: wrong channels.
+        let channels = SpecificChannels::rgb(|_: Vec2<usize>| (f32::NAN, f32::NAN, f32::NAN));
+        let mut exr = Vec::new();
+        Image::from_channels((4, 4), channels)
+            .write()
+            .non_parallel()
+            .to_buffered(Cursor::new(&mut exr))
+            .unwrap();
+        let nan = zstd::bulk::compress(&exr, 1).unwrap();
+        assert!(matches!(decode_partial(&nan, 1 << 20), Err(PartialError::Channels { .. })));
+        // Bigger than allowed once decompressed.
+        let big = encode_partial(&Accum::new(0, 0, 64, 64));
+        assert!(matches!(decode_partial(&big, 1000), Err(PartialError::TooLarge(_))));
+    }
+}
