@@ -1,13 +1,18 @@
-//! Furnace's coordinator. So far: the exact merge of a job's partial accumulations, each chunk
-//! merged at most once. The HTTP API, scheduler, leases and persistence join with the farm
-//! protocol.
+//! Furnace's coordinator: jobs, chunk leases, the exact merge of partial accumulations, and
+//! their persistence, behind the HTTP API of `furnace serve`.
+
+pub mod api;
+pub mod state;
 
 use std::collections::HashSet;
 
 use furnace_core::Accum;
 use furnace_proto::ChunkSpec;
 
-/// The merged image of one job.
+pub use api::{router, run, AppState};
+pub use state::{CoordError, Coordinator};
+
+/// The merged image of one job, in memory (the rule the coordinator applies).
 pub struct JobAccum {
     pub accum: Accum,
     merged: HashSet<u32>,

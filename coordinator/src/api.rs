@@ -1,0 +1,278 @@
+//! The HTTP API under `/v1` (axum). Every refusal is a 4xx with a JSON `{"error": ...}` body.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use axum::body::Bytes;
+use axum::extract::{DefaultBodyLimit, Path, RawQuery, Request, State};
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post, put};
+use axum::{Json, Router};
+use furnace_proto::{is_hash, ApiError, Heartbeat, JobSpec, LeaseRequest};
+use serde::Deserialize;
+
+use crate::state::{CoordError, Coordinator};
+
+/// Shared state of the server.
+#[derive(Clone)]
+pub struct AppState {
+    pub coord: Arc<Mutex<Coordinator>>,
+    /// Bearer token required on every request, when set.
+    pub token: Option<String>,
+}
+
+impl AppState {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Coordinator> {
+        self.coord.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+fn error(status: StatusCode, msg: impl Into<String>) -> Response {
+    (status, Json(ApiError { error: msg.into() })).into_response()
+}
+
+impl IntoResponse for CoordError {
+    fn into_response(self) -> Response {
+        let status = match &self {
+            CoordError::BadRequest(_) => StatusCode::BAD_REQUEST,
+            CoordError::NotFound(_) => StatusCode::NOT_FOUND,
+            CoordError::Conflict(_) => StatusCode::CONFLICT,
+            CoordError::Unprocessable(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            CoordError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        };
+        if status.is_server_error() {
+            tracing::error!("{self}");
+        }
+        error(status, self.to_string())
+    }
+}
+
+type ApiResult = Result<Response, CoordError>;
+
+fn json_body<T: for<'de> Deserialize<'de>>(body: &Bytes, what: &str) -> Result<T, CoordError> {
+    serde_json::from_slice(body).map_err(|e| CoordError::BadRequest(format!("{what}: invalid JSON: {e}")))
+}
+
+/// Largest request body: scene files and partials.
+pub const MAX_BODY: usize = 256 << 20;
+
+pub fn router(state: AppState) -> Router {
+    Router::new()
+        .route("/v1/files/{hash}", put(put_file).get(get_file).head(head_file))
+        .route("/v1/bundles/{hash}", get(get_bundle))
+        .route("/v1/jobs", post(post_job).get(list_jobs))
+        .route("/v1/jobs/{id}", get(get_job))
+        .route("/v1/jobs/{id}/events", get(job_events))
+        .route("/v1/jobs/{id}/preview.png", get(preview))
+        .route("/v1/jobs/{id}/result.exr", get(result))
+        .route("/v1/jobs/{id}/priority", post(priority))
+        .route("/v1/jobs/{id}/{action}", post(control))
+        .route("/v1/leases", post(lease))
+        .route("/v1/jobs/{id}/chunks/{chunk}/heartbeat", post(heartbeat))
+        .route("/v1/jobs/{id}/chunks/{chunk}/fail", post(fail))
+        .route("/v1/jobs/{id}/chunks/{chunk}/result", put(upload))
+        .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint (see /v1)") })
+        .layer(middleware::from_fn_with_state(state.clone(), auth))
+        .layer(DefaultBodyLimit::max(MAX_BODY))
+        .with_state(state)
+}
+
+async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
+    if let Some(token) = &s.token {
+        let ok = req
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .is_some_and(|t| t == token);
+        if !ok {
+            return error(StatusCode::UNAUTHORIZED, "missing or wrong token (Authorization: Bearer ...)");
+        }
+    }
+    next.run(req).await
+}
+
+async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: Bytes) -> ApiResult {
+    if !is_hash(&hash) {
+        return Err(CoordError::BadRequest(format!("'{hash}' is not a BLAKE3 hex hash")));
+    }
+    let actual = blake3::hash(&body).to_hex().to_string();
+    if actual != hash {
+        return Err(CoordError::BadRequest(format!("body hashes to {actual}, not {hash}")));
+    }
+    let path = s.lock().file_path(&hash);
+    if path.exists() {
+        return Ok((StatusCode::OK, Json(serde_json::json!({"stored": false}))).into_response());
+    }
+    tokio::task::spawn_blocking(move || crate::state::write_atomic(&path, &body))
+        .await
+        .map_err(|e| CoordError::Internal(e.to_string()))??;
+    Ok((StatusCode::CREATED, Json(serde_json::json!({"stored": true}))).into_response())
+}
+
+async fn head_file(State(s): State<AppState>, Path(hash): Path<String>) -> StatusCode {
+    if is_hash(&hash) && s.lock().file_path(&hash).exists() {
+        StatusCode::OK
+    } else {
+        StatusCode::NOT_FOUND
+    }
+}
+
+async fn get_file(State(s): State<AppState>, Path(hash): Path<String>) -> ApiResult {
+    if !is_hash(&hash) {
+        return Err(CoordError::BadRequest(format!("'{hash}' is not a BLAKE3 hex hash")));
+    }
+    let path = s.lock().file_path(&hash);
+    let bytes = std::fs::read(&path).map_err(|_| CoordError::NotFound(format!("no file {hash}")))?;
+    Ok(bytes.into_response())
+}
+
+async fn get_bundle(State(s): State<AppState>, Path(hash): Path<String>) -> ApiResult {
+    let bytes = s.lock().bundle_manifest(&hash)?;
+    Ok(([(header::CONTENT_TYPE, "application/json")], bytes).into_response())
+}
+
+async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) -> ApiResult {
+    let spec: JobSpec = json_body(&body, "job spec")?;
+    let key = headers.get("idempotency-key").and_then(|v| v.to_str().ok()).map(String::from);
+    let coord = s.coord.clone();
+    let (id, created) = tokio::task::spawn_blocking(move || {
+        coord.lock().unwrap_or_else(|e| e.into_inner()).submit(spec, key.as_deref())
+    })
+    .await
+    .map_err(|e| CoordError::Internal(e.to_string()))??;
+    let status = if created { StatusCode::CREATED } else { StatusCode::OK };
+    Ok((status, Json(serde_json::json!({"id": id}))).into_response())
+}
+
+async fn list_jobs(State(s): State<AppState>) -> ApiResult {
+    let c = s.lock();
+    let all: Result<Vec<_>, _> = c.job_ids().iter().map(|id| c.status(id)).collect();
+    Ok(Json(all?).into_response())
+}
+
+async fn get_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
+    Ok(Json(s.lock().status(&id)?).into_response())
+}
+
+async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
+    s.lock().status(&id)?;
+    let stream = futures_util::stream::unfold((s, id, false), |(s, id, finished)| async move {
+        if finished {
+            return None;
+        }
+        let status = s.lock().status(&id).ok()?;
+        let done = matches!(status.state, furnace_proto::JobState::Done | furnace_proto::JobState::Cancelled);
+        let event = Event::default().event("progress").json_data(&status).ok()?;
+        if !done {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        }
+        Some((Ok::<_, std::convert::Infallible>(event), (s, id, done)))
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
+}
+
+async fn preview(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
+    let img = s.lock().image(&id)?;
+    let dir = std::env::temp_dir().join(format!("furnace-preview-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let path = dir.join(format!("{id}.png"));
+    img.write_png(&path, 0.0).map_err(|e| CoordError::Internal(e.to_string()))?;
+    let bytes = std::fs::read(&path)?;
+    Ok(([(header::CONTENT_TYPE, "image/png")], bytes).into_response())
+}
+
+async fn result(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
+    let path = s.lock().result_path(&id)?;
+    let bytes: Vec<u8> = std::fs::read(&path)?;
+    Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response())
+}
+
+async fn control(State(s): State<AppState>, Path((id, action)): Path<(String, String)>) -> ApiResult {
+    s.lock().control(&id, &action)?;
+    Ok(Json(s.lock().status(&id)?).into_response())
+}
+
+#[derive(Deserialize)]
+struct Priority {
+    priority: i32,
+}
+
+async fn priority(State(s): State<AppState>, Path(id): Path<String>, body: Bytes) -> ApiResult {
+    let p: Priority = json_body(&body, "priority")?;
+    s.lock().set_priority(&id, p.priority)?;
+    Ok(Json(s.lock().status(&id)?).into_response())
+}
+
+async fn lease(State(s): State<AppState>, body: Bytes) -> ApiResult {
+    let req: LeaseRequest = json_body(&body, "lease request")?;
+    if req.worker.is_empty() || req.worker.len() > 200 {
+        return Err(CoordError::BadRequest("worker name must be 1 to 200 bytes".into()));
+    }
+    match s.lock().lease(&req.worker, Instant::now()) {
+        Some(l) => Ok(Json(l).into_response()),
+        None => Ok(StatusCode::NO_CONTENT.into_response()),
+    }
+}
+
+async fn heartbeat(State(s): State<AppState>, Path((id, chunk)): Path<(String, u32)>, body: Bytes) -> ApiResult {
+    let hb: Heartbeat = json_body(&body, "heartbeat")?;
+    let ms = s.lock().heartbeat(&id, chunk, hb.epoch, Instant::now())?;
+    Ok(Json(serde_json::json!({"deadline_ms": ms})).into_response())
+}
+
+#[derive(Deserialize)]
+struct Failure {
+    epoch: u64,
+    error: String,
+}
+
+async fn fail(State(s): State<AppState>, Path((id, chunk)): Path<(String, u32)>, body: Bytes) -> ApiResult {
+    let f: Failure = json_body(&body, "failure report")?;
+    s.lock().fail(&id, chunk, f.epoch, &f.error)?;
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+async fn upload(
+    State(s): State<AppState>,
+    Path((id, chunk)): Path<(String, u32)>,
+    RawQuery(q): RawQuery,
+    body: Bytes,
+) -> ApiResult {
+    let epoch = q
+        .as_deref()
+        .unwrap_or("")
+        .split('&')
+        .find_map(|kv| kv.strip_prefix("epoch="))
+        .and_then(|v| v.parse::<u64>().ok())
+        .ok_or_else(|| CoordError::BadRequest("the upload needs ?epoch= of its lease".into()))?;
+    let coord = s.coord.clone();
+    tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
+        // Decode outside the lock: it is the slow part.
+        let (acc, path) = coord.lock().unwrap_or_else(|e| e.into_inner()).check_upload(&id, chunk, epoch, &body)?;
+        coord.lock().unwrap_or_else(|e| e.into_inner()).accept_upload(&id, chunk, epoch, &body, &acc, &path, Instant::now())
+    })
+    .await
+    .map_err(|e| CoordError::Internal(e.to_string()))??;
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+/// Serves until `shutdown` resolves; expires leases every half second.
+pub async fn run(
+    listener: tokio::net::TcpListener,
+    state: AppState,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    let coord = state.coord.clone();
+    tokio::spawn(async move {
+        let mut tick = tokio::time::interval(Duration::from_millis(500));
+        loop {
+            tick.tick().await;
+            coord.lock().unwrap_or_else(|e| e.into_inner()).expire_leases(Instant::now());
+        }
+    });
+    axum::serve(listener, router(state)).with_graceful_shutdown(shutdown).await
+}

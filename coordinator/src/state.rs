@@ -1,0 +1,621 @@
+//! The coordinator's state: jobs, their chunks and leases, the exact merge, and persistence.
+//!
+//! Durability: an accepted partial is written to `jobs/{id}/partials/{chunk}.zst` (temporary
+//! file, fsync, rename) before the upload is acknowledged; the merged image lives in memory and
+//! in a checkpoint (`jobs/{id}/checkpoint`: the merged accumulation plus the set of chunks in
+//! it), written atomically every `CHECKPOINT_EVERY` merges and at the end, after which the
+//! partials it contains are deleted. After a crash, a job's image is its checkpoint plus every
+//! partial not in it: nothing acknowledged is lost and nothing is merged twice. Jobs themselves
+//! (spec, state, priority, idempotency key) are rows in SQLite (WAL). Leases live in memory:
+//! after a restart every unfinished chunk is pending again, under epochs above all earlier ones.
+
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use furnace_core::{Accum, Scene};
+use furnace_proto::{chunk_plan, decode_partial, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus, Lease};
+
+/// Merges between checkpoints.
+const CHECKPOINT_EVERY: usize = 256;
+/// Failures of one worker on one job after which it gets no more of that job's chunks.
+pub const MAX_FAILURES_PER_WORKER: u32 = 3;
+
+#[derive(Debug, thiserror::Error)]
+pub enum CoordError {
+    #[error("{0}")]
+    BadRequest(String),
+    #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
+    Conflict(String),
+    #[error("{0}")]
+    Unprocessable(String),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl From<std::io::Error> for CoordError {
+    fn from(e: std::io::Error) -> Self {
+        CoordError::Internal(e.to_string())
+    }
+}
+impl From<rusqlite::Error> for CoordError {
+    fn from(e: rusqlite::Error) -> Self {
+        CoordError::Internal(format!("database: {e}"))
+    }
+}
+
+#[derive(Clone, Debug)]
+enum ChunkState {
+    Pending,
+    Leased { epoch: u64, worker: String, deadline: Instant },
+    Done,
+}
+
+struct Job {
+    id: String,
+    spec: JobSpec,
+    state: JobState,
+    plan: Vec<ChunkSpec>,
+    chunks: Vec<ChunkState>,
+    /// Pending chunks in hand-out order: requeued ones go to the front.
+    queue: VecDeque<u32>,
+    accum: Accum,
+    /// Chunks whose partial is in `accum`.
+    merged: HashSet<u32>,
+    /// Chunks in the last checkpoint.
+    checkpointed: HashSet<u32>,
+    since_checkpoint: usize,
+    /// Filter margin of the scene, for checking partial sizes.
+    margin: u32,
+    render_plan: String,
+    failures: HashMap<String, u32>,
+    errors: Vec<String>,
+    workers: BTreeMap<String, Instant>,
+    /// (time, samples) of recent merges, for the rate.
+    recent: VecDeque<(Instant, u64)>,
+    samples_done: u64,
+    created: u64,
+}
+
+impl Job {
+    fn dir(&self, data: &Path) -> PathBuf {
+        data.join("jobs").join(&self.id)
+    }
+
+    fn samples_total(&self) -> u64 {
+        let s = &self.spec.settings;
+        s.width as u64 * s.height as u64 * s.spp
+    }
+
+    fn counts(&self) -> (u64, u64, u64) {
+        let (mut done, mut leased, mut pending) = (0, 0, 0);
+        for c in &self.chunks {
+            match c {
+                ChunkState::Done => done += 1,
+                ChunkState::Leased { .. } => leased += 1,
+                ChunkState::Pending => pending += 1,
+            }
+        }
+        (done, leased, pending)
+    }
+}
+
+pub struct Coordinator {
+    data: PathBuf,
+    db: rusqlite::Connection,
+    jobs: BTreeMap<String, Job>,
+    next_epoch: u64,
+    pub lease_duration: Duration,
+    /// Largest decompressed partial accepted (bytes).
+    pub max_partial: usize,
+}
+
+fn now_secs() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0)
+}
+
+/// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the folder.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir)?;
+    let tmp = dir.join(format!(".{}.tmp", path.file_name().and_then(|n| n.to_str()).unwrap_or("file")));
+    {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+    }
+    std::fs::rename(&tmp, path)?;
+    if let Ok(d) = std::fs::File::open(dir) {
+        d.sync_all().ok();
+    }
+    Ok(())
+}
+
+impl Coordinator {
+    /// Opens (or creates) the data directory and resumes every unfinished job.
+    pub fn open(data: &Path) -> Result<Coordinator, CoordError> {
+        std::fs::create_dir_all(data.join("files"))?;
+        std::fs::create_dir_all(data.join("jobs"))?;
+        std::fs::create_dir_all(data.join("bundles"))?;
+        let db = rusqlite::Connection::open(data.join("furnace.db"))?;
+        db.pragma_update(None, "journal_mode", "WAL")?;
+        db.pragma_update(None, "synchronous", "FULL")?;
+        db.execute_batch(
+            "CREATE TABLE IF NOT EXISTS jobs (
+                id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
+                idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);
+             CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);",
+        )?;
+        // Epochs after a restart start above every epoch handed out before.
+        let boot: i64 = db
+            .query_row("SELECT value FROM meta WHERE key = 'boot'", [], |r| r.get(0))
+            .unwrap_or(0)
+            + 1;
+        db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('boot', ?1)", [boot])?;
+        let mut c = Coordinator {
+            data: data.to_path_buf(),
+            db,
+            jobs: BTreeMap::new(),
+            next_epoch: (boot as u64) << 32,
+            lease_duration: Duration::from_secs(30),
+            max_partial: 256 << 20,
+        };
+        let rows: Vec<(String, String, String, i64)> = {
+            let mut st = c.db.prepare("SELECT id, spec, state, created FROM jobs ORDER BY created, id")?;
+            let rows = st.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)))?;
+            rows.collect::<Result<_, _>>()?
+        };
+        for (id, spec, state, created) in rows {
+            let spec: JobSpec = serde_json::from_str(&spec)
+                .map_err(|e| CoordError::Internal(format!("job {id}: stored spec unreadable: {e}")))?;
+            let state: JobState = serde_json::from_value(serde_json::Value::String(state))
+                .map_err(|e| CoordError::Internal(format!("job {id}: stored state unreadable: {e}")))?;
+            let job = c.restore_job(id.clone(), spec, state, created as u64)?;
+            c.jobs.insert(id, job);
+        }
+        Ok(c)
+    }
+
+    pub fn data_dir(&self) -> &Path {
+        &self.data
+    }
+
+    /// Path of a stored file by hash.
+    pub fn file_path(&self, hash: &str) -> PathBuf {
+        self.data.join("files").join(hash)
+    }
+
+    fn bundle_dir(&self, bundle_hash: &str) -> PathBuf {
+        self.data.join("bundles").join(bundle_hash)
+    }
+
+    /// Lays the bundle's files out under `bundles/{hash}/` (once) and loads its scene.
+    fn load_bundle(&self, spec: &JobSpec) -> Result<(PathBuf, Scene), CoordError> {
+        let b = &spec.bundle;
+        b.validate().map_err(CoordError::BadRequest)?;
+        let missing: Vec<&str> =
+            b.files.iter().filter(|(_, h)| !self.file_path(h).exists()).map(|(p, _)| p.as_str()).collect();
+        if !missing.is_empty() {
+            return Err(CoordError::BadRequest(format!(
+                "bundle files not uploaded yet: {} (PUT /v1/files/{{hash}} first)",
+                missing.join(", ")
+            )));
+        }
+        let hash = b.hash();
+        let dir = self.bundle_dir(&hash);
+        for (path, h) in &b.files {
+            let dst = dir.join(path);
+            if !dst.exists() {
+                if let Some(parent) = dst.parent() {
+                    std::fs::create_dir_all(parent)?;
+                }
+                std::fs::copy(self.file_path(h), &dst)?;
+            }
+        }
+        std::fs::write(self.data.join("bundles").join(format!("{hash}.json")), serde_json::to_vec(b).unwrap_or_default())?;
+        let scene = Scene::load(&dir.join(&b.scene), &[])
+            .map_err(|e| CoordError::Unprocessable(format!("the scene cannot be rendered: {e}")))?;
+        Ok((dir, scene))
+    }
+
+    fn new_job(&self, id: String, mut spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
+        let (_, scene) = self.load_bundle(&spec)?;
+        let s = &mut spec.settings;
+        let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+        if s.width == 0 && s.height == 0 {
+            (s.width, s.height) = (w, h);
+        }
+        if (s.width, s.height) != (w, h) {
+            return Err(CoordError::Unprocessable(format!(
+                "job size {}x{} differs from the scene's film {w}x{h}",
+                s.width, s.height
+            )));
+        }
+        if s.spp == 0 {
+            s.spp = scene.spp as u64;
+        }
+        if s.tile_size == 0 || s.spp_per_chunk == 0 {
+            return Err(CoordError::BadRequest("tile_size and spp_per_chunk must be positive".into()));
+        }
+        let plan = chunk_plan(s);
+        let n = plan.len();
+        Ok(Job {
+            id,
+            accum: Accum::new(0, 0, w, h),
+            margin: scene.film.filter.margin(),
+            render_plan: scene.plan.to_string(),
+            spec,
+            state,
+            chunks: vec![ChunkState::Pending; n],
+            queue: (0..n as u32).collect(),
+            plan,
+            merged: HashSet::new(),
+            checkpointed: HashSet::new(),
+            since_checkpoint: 0,
+            failures: HashMap::new(),
+            errors: Vec::new(),
+            workers: BTreeMap::new(),
+            recent: VecDeque::new(),
+            samples_done: 0,
+            created,
+        })
+    }
+
+    /// Rebuilds a job after a restart: checkpoint plus every partial not in it.
+    fn restore_job(&self, id: String, spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
+        let mut job = self.new_job(id, spec, state, created)?;
+        let dir = job.dir(&self.data);
+        if let Ok(bytes) = std::fs::read(dir.join("checkpoint")) {
+            let (ids, acc) = decode_checkpoint(&bytes, self.max_partial.max(1 << 30))
+                .map_err(|e| CoordError::Internal(format!("job {}: checkpoint: {e}", job.id)))?;
+            job.accum = acc;
+            job.merged = ids.iter().copied().collect();
+            job.checkpointed = job.merged.clone();
+        }
+        if let Ok(entries) = std::fs::read_dir(dir.join("partials")) {
+            let mut files: Vec<(u32, PathBuf)> = entries
+                .flatten()
+                .filter_map(|e| {
+                    let name = e.file_name().into_string().ok()?;
+                    let id = name.strip_suffix(".zst")?.parse().ok()?;
+                    Some((id, e.path()))
+                })
+                .collect();
+            files.sort();
+            for (id, path) in files {
+                if job.merged.contains(&id) || id as usize >= job.plan.len() {
+                    std::fs::remove_file(&path).ok();
+                    continue;
+                }
+                let bytes = std::fs::read(&path)?;
+                let acc = decode_partial(&bytes, self.max_partial)
+                    .map_err(|e| CoordError::Internal(format!("job {}: stored partial {id}: {e}", job.id)))?;
+                job.accum.merge(&acc);
+                job.merged.insert(id);
+            }
+        }
+        for &id in &job.merged {
+            job.chunks[id as usize] = ChunkState::Done;
+            job.samples_done += job.plan[id as usize].region.samples();
+        }
+        job.queue.retain(|id| !job.merged.contains(id));
+        Ok(job)
+    }
+
+    /// Submits a job; with an idempotency key already used, returns that job instead.
+    pub fn submit(&mut self, spec: JobSpec, key: Option<&str>) -> Result<(String, bool), CoordError> {
+        if let Some(k) = key {
+            let found: Option<String> =
+                self.db.query_row("SELECT id FROM jobs WHERE idempotency_key = ?1", [k], |r| r.get(0)).ok();
+            if let Some(id) = found {
+                return Ok((id, false));
+            }
+        }
+        let created = now_secs();
+        let id = {
+            let seed = format!("{}-{}-{:?}-{}", spec.bundle.hash(), created, key, self.jobs.len());
+            blake3::hash(seed.as_bytes()).to_hex()[..16].to_string()
+        };
+        let job = self.new_job(id.clone(), spec, JobState::Queued, created)?;
+        let spec_json = serde_json::to_string(&job.spec).map_err(|e| CoordError::Internal(e.to_string()))?;
+        self.db.execute(
+            "INSERT INTO jobs (id, spec, state, idempotency_key, created) VALUES (?1, ?2, 'queued', ?3, ?4)",
+            rusqlite::params![id, spec_json, key, created as i64],
+        )?;
+        std::fs::create_dir_all(job.dir(&self.data).join("partials"))?;
+        self.jobs.insert(id.clone(), job);
+        Ok((id, true))
+    }
+
+    fn job_mut(&mut self, id: &str) -> Result<&mut Job, CoordError> {
+        self.jobs.get_mut(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))
+    }
+
+    fn set_state(&mut self, id: &str, state: JobState) -> Result<(), CoordError> {
+        let name = serde_json::to_value(state).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default();
+        self.db.execute("UPDATE jobs SET state = ?1 WHERE id = ?2", rusqlite::params![name, id])?;
+        self.job_mut(id)?.state = state;
+        Ok(())
+    }
+
+    /// Cancel, pause or resume.
+    pub fn control(&mut self, id: &str, action: &str) -> Result<(), CoordError> {
+        let state = self.job_mut(id)?.state;
+        let next = match (action, state) {
+            (_, JobState::Done) => return Err(CoordError::Conflict(format!("job {id} is done"))),
+            ("cancel", _) => JobState::Cancelled,
+            (_, JobState::Cancelled) => return Err(CoordError::Conflict(format!("job {id} is cancelled"))),
+            ("pause", _) => JobState::Paused,
+            ("resume", JobState::Paused) => JobState::Queued,
+            ("resume", s) => s,
+            (a, _) => return Err(CoordError::BadRequest(format!("unknown action '{a}' (cancel, pause, resume)"))),
+        };
+        self.set_state(id, next)
+    }
+
+    pub fn set_priority(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
+        let job = self.job_mut(id)?;
+        job.spec.settings.priority = priority;
+        let spec = serde_json::to_string(&job.spec).map_err(|e| CoordError::Internal(e.to_string()))?;
+        self.db.execute("UPDATE jobs SET spec = ?1 WHERE id = ?2", rusqlite::params![spec, id])?;
+        Ok(())
+    }
+
+    /// Returns expired leases to the front of their job's queue.
+    pub fn expire_leases(&mut self, now: Instant) {
+        for job in self.jobs.values_mut() {
+            for (i, c) in job.chunks.iter_mut().enumerate() {
+                if let ChunkState::Leased { deadline, worker, .. } = c {
+                    if *deadline <= now {
+                        tracing::info!(job = %job.id, chunk = i, worker = %worker, "lease expired; chunk requeued");
+                        *c = ChunkState::Pending;
+                        job.queue.push_front(i as u32);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Hands out the next chunk: highest priority first, then oldest job; pass by pass.
+    pub fn lease(&mut self, worker: &str, now: Instant) -> Option<Lease> {
+        self.expire_leases(now);
+        let mut order: Vec<(i32, u64, String)> = self
+            .jobs
+            .values()
+            .filter(|j| matches!(j.state, JobState::Queued | JobState::Running))
+            .filter(|j| j.failures.get(worker).copied().unwrap_or(0) < MAX_FAILURES_PER_WORKER)
+            .filter(|j| !j.queue.is_empty())
+            .map(|j| (-j.spec.settings.priority, j.created, j.id.clone()))
+            .collect();
+        order.sort();
+        let (_, _, id) = order.into_iter().next()?;
+        let epoch = self.next_epoch;
+        self.next_epoch += 1;
+        let deadline = now + self.lease_duration;
+        let ms = self.lease_duration.as_millis() as u64;
+        let job = self.jobs.get_mut(&id)?;
+        let chunk = job.queue.pop_front()?;
+        job.chunks[chunk as usize] = ChunkState::Leased { epoch, worker: worker.to_string(), deadline };
+        job.workers.insert(worker.to_string(), now);
+        if job.state == JobState::Queued {
+            job.state = JobState::Running;
+            let _ = self.db.execute("UPDATE jobs SET state = 'running' WHERE id = ?1", [&id]);
+        }
+        let job = &self.jobs[&id];
+        Some(Lease {
+            job: id.clone(),
+            chunk: job.plan[chunk as usize],
+            epoch,
+            settings: job.spec.settings.clone(),
+            bundle_hash: job.spec.bundle.hash(),
+            deadline_ms: ms,
+        })
+    }
+
+    fn leased(&mut self, job: &str, chunk: u32, epoch: u64) -> Result<&mut Job, CoordError> {
+        let j = self.job_mut(job)?;
+        let c = j
+            .chunks
+            .get(chunk as usize)
+            .ok_or_else(|| CoordError::NotFound(format!("job {job} has no chunk {chunk}")))?;
+        match c {
+            ChunkState::Leased { epoch: e, .. } if *e == epoch => Ok(j),
+            ChunkState::Done => Err(CoordError::Conflict(format!("chunk {chunk} of job {job} is already merged"))),
+            _ => Err(CoordError::Conflict(format!(
+                "stale lease: chunk {chunk} of job {job} is not leased under epoch {epoch}"
+            ))),
+        }
+    }
+
+    pub fn heartbeat(&mut self, job: &str, chunk: u32, epoch: u64, now: Instant) -> Result<u64, CoordError> {
+        let d = self.lease_duration;
+        let j = self.leased(job, chunk, epoch)?;
+        if let ChunkState::Leased { deadline, worker, .. } = &mut j.chunks[chunk as usize] {
+            *deadline = now + d;
+            j.workers.insert(worker.clone(), now);
+        }
+        Ok(d.as_millis() as u64)
+    }
+
+    /// A worker reports that it could not render its chunk.
+    pub fn fail(&mut self, job: &str, chunk: u32, epoch: u64, error: &str) -> Result<(), CoordError> {
+        let j = self.leased(job, chunk, epoch)?;
+        let worker = match &j.chunks[chunk as usize] {
+            ChunkState::Leased { worker, .. } => worker.clone(),
+            _ => unreachable!("checked by leased()"),
+        };
+        let n = j.failures.entry(worker.clone()).or_insert(0);
+        *n += 1;
+        j.errors.push(format!("worker {worker}, chunk {chunk}: {error}"));
+        if *n == MAX_FAILURES_PER_WORKER {
+            j.errors.push(format!("worker {worker} failed {n} times and gets no more of this job"));
+        }
+        j.chunks[chunk as usize] = ChunkState::Pending;
+        j.queue.push_front(chunk);
+        Ok(())
+    }
+
+    /// Checks an upload against the lease, decodes it and checks its rectangle. Returns the
+    /// partial and where to store it. Does not change state.
+    pub fn check_upload(
+        &mut self,
+        job: &str,
+        chunk: u32,
+        epoch: u64,
+        body: &[u8],
+    ) -> Result<(Accum, PathBuf), CoordError> {
+        let max = self.max_partial;
+        let data = self.data.clone();
+        let j = self.leased(job, chunk, epoch)?;
+        let acc = decode_partial(body, max).map_err(|e| CoordError::BadRequest(e.to_string()))?;
+        let s = &j.spec.settings;
+        let r = &j.plan[chunk as usize].region;
+        let m = j.margin;
+        let x0 = r.x0.saturating_sub(m);
+        let y0 = r.y0.saturating_sub(m);
+        let want = (x0, y0, (r.x1 + m).min(s.width) - x0, (r.y1 + m).min(s.height) - y0);
+        let got = (acc.x0, acc.y0, acc.width, acc.height);
+        if got != want {
+            return Err(CoordError::BadRequest(format!(
+                "partial covers {}x{} at ({}, {}); chunk {chunk} needs {}x{} at ({}, {})",
+                got.2, got.3, got.0, got.1, want.2, want.3, want.0, want.1
+            )));
+        }
+        let expected = r.samples();
+        if acc.sample_count() != expected {
+            return Err(CoordError::BadRequest(format!(
+                "partial holds {} samples; chunk {chunk} has {expected}",
+                acc.sample_count()
+            )));
+        }
+        Ok((acc, j.dir(&data).join("partials").join(format!("{chunk}.zst"))))
+    }
+
+    /// Stores (durably) and merges a checked partial; at most once per chunk.
+    pub fn accept_upload(
+        &mut self,
+        job: &str,
+        chunk: u32,
+        epoch: u64,
+        body: &[u8],
+        acc: &Accum,
+        path: &Path,
+        now: Instant,
+    ) -> Result<(), CoordError> {
+        self.leased(job, chunk, epoch)?;
+        write_atomic(path, body)?;
+        let data = self.data.clone();
+        let j = self.job_mut(job)?;
+        j.accum.merge(acc);
+        j.merged.insert(chunk);
+        j.chunks[chunk as usize] = ChunkState::Done;
+        let samples = j.plan[chunk as usize].region.samples();
+        j.samples_done += samples;
+        j.recent.push_back((now, samples));
+        while j.recent.len() > 1 && now.duration_since(j.recent[0].0) > Duration::from_secs(30) {
+            j.recent.pop_front();
+        }
+        j.since_checkpoint += 1;
+        let finished = j.merged.len() == j.plan.len();
+        if finished || j.since_checkpoint >= CHECKPOINT_EVERY {
+            checkpoint(j, &data)?;
+        }
+        if finished {
+            let dir = j.dir(&data);
+            let img = j.accum.develop();
+            img.write_exr(&dir.join("result.exr")).map_err(|e| CoordError::Internal(e.to_string()))?;
+            self.set_state(job, JobState::Done)?;
+            tracing::info!(job, "job done");
+        }
+        Ok(())
+    }
+
+    pub fn status(&self, id: &str) -> Result<JobStatus, CoordError> {
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        let (done, leased, pending) = j.counts();
+        let rate = match (j.recent.front(), j.recent.back()) {
+            (Some(a), Some(b)) if b.0 > a.0 => {
+                let s: u64 = j.recent.iter().skip(1).map(|x| x.1).sum();
+                s as f64 / b.0.duration_since(a.0).as_secs_f64()
+            }
+            _ => 0.0,
+        };
+        let left = j.samples_total() - j.samples_done;
+        Ok(JobStatus {
+            id: j.id.clone(),
+            state: j.state,
+            settings: j.spec.settings.clone(),
+            chunks_total: j.plan.len() as u64,
+            chunks_done: done,
+            chunks_leased: leased,
+            chunks_pending: pending,
+            samples_done: j.samples_done,
+            samples_total: j.samples_total(),
+            samples_per_second: rate,
+            eta_seconds: (rate > 0.0).then(|| left as f64 / rate),
+            workers: j.workers.keys().cloned().collect(),
+            errors: j.errors.clone(),
+            plan: j.render_plan.clone(),
+        })
+    }
+
+    pub fn job_ids(&self) -> Vec<String> {
+        self.jobs.keys().cloned().collect()
+    }
+
+    /// The merged image so far.
+    pub fn image(&self, id: &str) -> Result<furnace_core::Image, CoordError> {
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        Ok(j.accum.develop())
+    }
+
+    pub fn result_path(&self, id: &str) -> Result<PathBuf, CoordError> {
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        if j.state != JobState::Done {
+            return Err(CoordError::Conflict(format!("job {id} is not done ({:?})", j.state)));
+        }
+        Ok(j.dir(&self.data).join("result.exr"))
+    }
+
+    pub fn bundle_manifest(&self, hash: &str) -> Result<Vec<u8>, CoordError> {
+        if !furnace_proto::is_hash(hash) {
+            return Err(CoordError::BadRequest(format!("'{hash}' is not a bundle hash")));
+        }
+        std::fs::read(self.data.join("bundles").join(format!("{hash}.json")))
+            .map_err(|_| CoordError::NotFound(format!("no bundle {hash}")))
+    }
+}
+
+/// Writes the job's checkpoint (merged chunk ids and accumulation) and drops the partials in it.
+fn checkpoint(j: &mut Job, data: &Path) -> Result<(), CoordError> {
+    let dir = j.dir(data);
+    let mut ids: Vec<u32> = j.merged.iter().copied().collect();
+    ids.sort();
+    let header = serde_json::to_vec(&ids).map_err(|e| CoordError::Internal(e.to_string()))?;
+    let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
+    bytes.extend_from_slice(&header);
+    bytes.extend_from_slice(&furnace_proto::encode_partial(&j.accum));
+    write_atomic(&dir.join("checkpoint"), &bytes)?;
+    for id in &ids {
+        if !j.checkpointed.contains(id) {
+            std::fs::remove_file(dir.join("partials").join(format!("{id}.zst"))).ok();
+        }
+    }
+    j.checkpointed = ids.into_iter().collect();
+    j.since_checkpoint = 0;
+    Ok(())
+}
+
+fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Accum), String> {
+    let n = u64::from_le_bytes(bytes.get(..8).ok_or("truncated")?.try_into().map_err(|_| "truncated")?) as usize;
+    let header = bytes.get(8..8 + n).ok_or("truncated header")?;
+    let ids: Vec<u32> = serde_json::from_slice(header).map_err(|e| e.to_string())?;
+    let acc = decode_partial(&bytes[8 + n..], max).map_err(|e| e.to_string())?;
+    Ok((ids, acc))
+}
+
+#[allow(dead_code)]
+fn _settings(_: &JobSettings) {}
