@@ -7,6 +7,8 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use furnace_core::{render_image, Image, Scene};
 
+mod farm;
+
 #[derive(Parser)]
 #[command(name = "furnace", version, about = "Furnace: a physically based renderer and its render farm")]
 struct Cli {
@@ -20,6 +22,14 @@ enum Cmd {
     Render(RenderArgs),
     /// Compare an EXR against a reference EXR: RMSE, relMSE, mean luminance.
     Compare { image: PathBuf, reference: PathBuf },
+    /// Run the farm's coordinator (HTTP API under /v1).
+    Serve(farm::ServeArgs),
+    /// Render chunks for a coordinator.
+    Worker(farm::WorkerArgs),
+    /// Submit a scene to a coordinator.
+    Submit(farm::SubmitArgs),
+    /// Show jobs on a coordinator.
+    Status(farm::StatusArgs),
 }
 
 #[derive(Args)]
@@ -70,6 +80,10 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Render(a) => render(a),
+        Cmd::Serve(a) => farm::serve(a),
+        Cmd::Worker(a) => farm::worker(a),
+        Cmd::Submit(a) => farm::submit(a),
+        Cmd::Status(a) => farm::status(a),
         Cmd::Compare { image, reference } => {
             let a = Image::read_exr(&image)?;
             let b = Image::read_exr(&reference)?;

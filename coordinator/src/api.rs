@@ -218,7 +218,11 @@ async fn lease(State(s): State<AppState>, body: Bytes) -> ApiResult {
     }
 }
 
-async fn heartbeat(State(s): State<AppState>, Path((id, chunk)): Path<(String, u32)>, body: Bytes) -> ApiResult {
+async fn heartbeat(
+    State(s): State<AppState>,
+    Path((id, chunk)): Path<(String, u32)>,
+    body: Bytes,
+) -> ApiResult {
     let hb: Heartbeat = json_body(&body, "heartbeat")?;
     let ms = s.lock().heartbeat(&id, chunk, hb.epoch, Instant::now())?;
     Ok(Json(serde_json::json!({"deadline_ms": ms})).into_response())
@@ -252,8 +256,17 @@ async fn upload(
     let coord = s.coord.clone();
     tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
         // Decode outside the lock: it is the slow part.
-        let (acc, path) = coord.lock().unwrap_or_else(|e| e.into_inner()).check_upload(&id, chunk, epoch, &body)?;
-        coord.lock().unwrap_or_else(|e| e.into_inner()).accept_upload(&id, chunk, epoch, &body, &acc, &path, Instant::now())
+        let (acc, path) =
+            coord.lock().unwrap_or_else(|e| e.into_inner()).check_upload(&id, chunk, epoch, &body)?;
+        coord.lock().unwrap_or_else(|e| e.into_inner()).accept_upload(
+            &id,
+            chunk,
+            epoch,
+            &body,
+            &acc,
+            &path,
+            Instant::now(),
+        )
     })
     .await
     .map_err(|e| CoordError::Internal(e.to_string()))??;

@@ -15,7 +15,9 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use furnace_core::{Accum, Scene};
-use furnace_proto::{chunk_plan, decode_partial, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus, Lease};
+use furnace_proto::{
+    chunk_plan, decode_partial, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus, Lease,
+};
 
 /// Merges between checkpoints.
 const CHECKPOINT_EVERY: usize = 256;
@@ -150,10 +152,8 @@ impl Coordinator {
              CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);",
         )?;
         // Epochs after a restart start above every epoch handed out before.
-        let boot: i64 = db
-            .query_row("SELECT value FROM meta WHERE key = 'boot'", [], |r| r.get(0))
-            .unwrap_or(0)
-            + 1;
+        let boot: i64 =
+            db.query_row("SELECT value FROM meta WHERE key = 'boot'", [], |r| r.get(0)).unwrap_or(0) + 1;
         db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('boot', ?1)", [boot])?;
         let mut c = Coordinator {
             data: data.to_path_buf(),
@@ -215,13 +215,22 @@ impl Coordinator {
                 std::fs::copy(self.file_path(h), &dst)?;
             }
         }
-        std::fs::write(self.data.join("bundles").join(format!("{hash}.json")), serde_json::to_vec(b).unwrap_or_default())?;
+        std::fs::write(
+            self.data.join("bundles").join(format!("{hash}.json")),
+            serde_json::to_vec(b).unwrap_or_default(),
+        )?;
         let scene = Scene::load(&dir.join(&b.scene), &[])
             .map_err(|e| CoordError::Unprocessable(format!("the scene cannot be rendered: {e}")))?;
         Ok((dir, scene))
     }
 
-    fn new_job(&self, id: String, mut spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
+    fn new_job(
+        &self,
+        id: String,
+        mut spec: JobSpec,
+        state: JobState,
+        created: u64,
+    ) -> Result<Job, CoordError> {
         let (_, scene) = self.load_bundle(&spec)?;
         let s = &mut spec.settings;
         let (w, h) = (scene.film.crop_width, scene.film.crop_height);
@@ -265,7 +274,13 @@ impl Coordinator {
     }
 
     /// Rebuilds a job after a restart: checkpoint plus every partial not in it.
-    fn restore_job(&self, id: String, spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
+    fn restore_job(
+        &self,
+        id: String,
+        spec: JobSpec,
+        state: JobState,
+        created: u64,
+    ) -> Result<Job, CoordError> {
         let mut job = self.new_job(id, spec, state, created)?;
         let dir = job.dir(&self.data);
         if let Ok(bytes) = std::fs::read(dir.join("checkpoint")) {
@@ -335,7 +350,8 @@ impl Coordinator {
     }
 
     fn set_state(&mut self, id: &str, state: JobState) -> Result<(), CoordError> {
-        let name = serde_json::to_value(state).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default();
+        let name =
+            serde_json::to_value(state).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default();
         self.db.execute("UPDATE jobs SET state = ?1 WHERE id = ?2", rusqlite::params![name, id])?;
         self.job_mut(id)?.state = state;
         Ok(())
@@ -351,7 +367,9 @@ impl Coordinator {
             ("pause", _) => JobState::Paused,
             ("resume", JobState::Paused) => JobState::Queued,
             ("resume", s) => s,
-            (a, _) => return Err(CoordError::BadRequest(format!("unknown action '{a}' (cancel, pause, resume)"))),
+            (a, _) => {
+                return Err(CoordError::BadRequest(format!("unknown action '{a}' (cancel, pause, resume)")))
+            }
         };
         self.set_state(id, next)
     }
@@ -423,7 +441,9 @@ impl Coordinator {
             .ok_or_else(|| CoordError::NotFound(format!("job {job} has no chunk {chunk}")))?;
         match c {
             ChunkState::Leased { epoch: e, .. } if *e == epoch => Ok(j),
-            ChunkState::Done => Err(CoordError::Conflict(format!("chunk {chunk} of job {job} is already merged"))),
+            ChunkState::Done => {
+                Err(CoordError::Conflict(format!("chunk {chunk} of job {job} is already merged")))
+            }
             _ => Err(CoordError::Conflict(format!(
                 "stale lease: chunk {chunk} of job {job} is not leased under epoch {epoch}"
             ))),
@@ -610,7 +630,8 @@ fn checkpoint(j: &mut Job, data: &Path) -> Result<(), CoordError> {
 }
 
 fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Accum), String> {
-    let n = u64::from_le_bytes(bytes.get(..8).ok_or("truncated")?.try_into().map_err(|_| "truncated")?) as usize;
+    let n =
+        u64::from_le_bytes(bytes.get(..8).ok_or("truncated")?.try_into().map_err(|_| "truncated")?) as usize;
     let header = bytes.get(8..8 + n).ok_or("truncated header")?;
     let ids: Vec<u32> = serde_json::from_slice(header).map_err(|e| e.to_string())?;
     let acc = decode_partial(&bytes[8 + n..], max).map_err(|e| e.to_string())?;

@@ -22,5 +22,5 @@ pub use film::Accum;
 pub use image_io::Image;
 pub use integrator::Stats;
 pub use plan::RenderPlan;
-pub use render::{plan_regions, render_image, render_region, Region};
+pub use render::{accum_rect, plan_regions, render_image, render_region, render_region_parallel, Region};
 pub use scene::{Scene, SceneError};

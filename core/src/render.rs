@@ -138,6 +138,22 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
 /// Renders the whole image at `spp` samples per pixel on the current rayon pool, calling
 /// `progress(samples_done)` as regions finish. The result does not depend on `tile`,
 /// `spp_per_chunk` or the thread count.
+/// Renders one region with the current rayon pool: rows in parallel, merged exactly, so the
+/// result is bit-identical to [`render_region`].
+pub fn render_region_parallel(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
+    let (ax, ay, aw, ah) = accum_rect(scene, r);
+    let bands: Vec<Region> =
+        (r.y0..r.y1).step_by(2).map(|y| Region { y0: y, y1: (y + 2).min(r.y1), ..*r }).collect();
+    let parts: Vec<(Accum, Stats)> = bands.par_iter().map(|b| render_region(scene, b, seed)).collect();
+    let mut acc = Accum::new(ax, ay, aw, ah);
+    let mut st = Stats::default();
+    for (a, s) in &parts {
+        acc.merge(a);
+        st.merge(s);
+    }
+    (acc, st)
+}
+
 pub fn render_image(
     scene: &Scene,
     spp: u64,

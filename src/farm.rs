@@ -1,0 +1,316 @@
+//! The farm's commands: `serve`, `worker`, `submit`, `status`.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use furnace_core::Scene;
+use furnace_proto::{ApiError, Bundle, JobSettings, JobSpec, JobState, JobStatus};
+
+#[derive(Args)]
+pub struct ServeArgs {
+    /// Folder for the database, uploaded files and job results.
+    #[arg(long)]
+    pub data_dir: PathBuf,
+    /// Address to listen on.
+    #[arg(long, default_value = "127.0.0.1:8640")]
+    pub bind: SocketAddr,
+    /// Workers to run inside this process.
+    #[arg(long, default_value_t = 0)]
+    pub local_workers: usize,
+    /// Threads per local worker (default: all cores shared).
+    #[arg(long)]
+    pub worker_threads: Option<usize>,
+    /// Shared token for workers and clients; required unless binding to loopback.
+    #[arg(long, env = "FURNACE_TOKEN")]
+    pub token: Option<String>,
+    /// Seconds a lease lasts without a heartbeat.
+    #[arg(long, default_value_t = 30.0)]
+    pub lease_seconds: f64,
+}
+
+#[derive(Args)]
+pub struct WorkerArgs {
+    /// Coordinator URL, e.g. http://127.0.0.1:8640.
+    #[arg(long)]
+    pub coordinator: String,
+    /// Render threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long, env = "FURNACE_TOKEN")]
+    pub token: Option<String>,
+    /// Name shown in job status (default: host and process id).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Scene bundle cache (default: furnace-cache in the temp folder).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Exit when the coordinator has no work instead of polling on.
+    #[arg(long)]
+    pub exit_when_idle: bool,
+}
+
+#[derive(Args)]
+pub struct SubmitArgs {
+    /// Scene file (Mitsuba 3 XML); it and every file it reads are uploaded.
+    pub scene: PathBuf,
+    #[arg(long, default_value = "http://127.0.0.1:8640")]
+    pub coordinator: String,
+    #[arg(long, env = "FURNACE_TOKEN")]
+    pub token: Option<String>,
+    /// Samples per pixel (default: the scene's).
+    #[arg(long)]
+    pub spp: Option<u64>,
+    /// Sample seed (default: the scene's).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    #[arg(long, default_value_t = 64)]
+    pub tile: u32,
+    #[arg(long, default_value_t = 64)]
+    pub spp_per_chunk: u64,
+    #[arg(long, default_value_t = 0)]
+    pub priority: i32,
+    /// Follow progress and download the result.
+    #[arg(long)]
+    pub wait: bool,
+    /// Where --wait writes the result.
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct StatusArgs {
+    /// Job id (default: every job).
+    pub job: Option<String>,
+    #[arg(long, default_value = "http://127.0.0.1:8640")]
+    pub coordinator: String,
+    #[arg(long, env = "FURNACE_TOKEN")]
+    pub token: Option<String>,
+}
+
+/// Sets `flag` on SIGTERM or SIGINT.
+fn stop_on_signal(flag: Arc<AtomicBool>) {
+    std::thread::spawn(move || {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else { return };
+        rt.block_on(async {
+            let Ok(mut term) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+            else {
+                return;
+            };
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = tokio::signal::ctrl_c() => {}
+            }
+        });
+        tracing::info!("stopping after the chunk in hand");
+        flag.store(true, Ordering::SeqCst);
+    });
+}
+
+pub fn serve(a: ServeArgs) -> Result<()> {
+    if !a.bind.ip().is_loopback() && a.token.is_none() {
+        bail!("binding to {} (not loopback) needs a shared token: --token or FURNACE_TOKEN", a.bind);
+    }
+    let mut coord = furnace_coordinator::Coordinator::open(&a.data_dir)
+        .with_context(|| format!("cannot open data folder {}", a.data_dir.display()))?;
+    coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
+    let state = furnace_coordinator::AppState { coord: Arc::new(Mutex::new(coord)), token: a.token.clone() };
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(a.bind)
+            .await
+            .with_context(|| format!("cannot listen on {}", a.bind))?;
+        let addr = listener.local_addr()?;
+        // The first line on stdout is the address, for scripts and tests that bind port 0.
+        println!("listening on http://{addr}");
+        tracing::info!("coordinator on http://{addr}, data in {}", a.data_dir.display());
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut locals = Vec::new();
+        for i in 0..a.local_workers {
+            let cfg = furnace_worker::WorkerConfig {
+                coordinator: format!("http://{addr}"),
+                token: a.token.clone(),
+                threads: a.worker_threads.unwrap_or(0),
+                name: format!("local-{i}"),
+                cache: a.data_dir.join("worker-cache"),
+                poll: Duration::from_millis(200),
+                stop: stop.clone(),
+                exit_when_idle: false,
+            };
+            locals.push(std::thread::spawn(move || furnace_worker::run(cfg)));
+        }
+        let shutdown = async {
+            let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+                .expect("SIGTERM handler");
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = tokio::signal::ctrl_c() => {}
+            }
+        };
+        furnace_coordinator::run(listener, state, shutdown).await?;
+        stop.store(true, Ordering::SeqCst);
+        Ok::<_, anyhow::Error>(())
+    })
+}
+
+pub fn worker(a: WorkerArgs) -> Result<()> {
+    let stop = Arc::new(AtomicBool::new(false));
+    stop_on_signal(stop.clone());
+    let host = std::fs::read_to_string("/etc/hostname").map(|s| s.trim().to_string()).unwrap_or_default();
+    let cfg = furnace_worker::WorkerConfig {
+        coordinator: a.coordinator,
+        token: a.token,
+        threads: a.threads.unwrap_or(0),
+        name: a.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
+        cache: a.cache.unwrap_or_else(|| std::env::temp_dir().join("furnace-cache")),
+        poll: Duration::from_millis(500),
+        stop,
+        exit_when_idle: a.exit_when_idle,
+    };
+    let n = furnace_worker::run(cfg)?;
+    tracing::info!("worker stopped after {n} chunks");
+    Ok(())
+}
+
+struct Api {
+    base: String,
+    token: Option<String>,
+    http: reqwest::blocking::Client,
+}
+
+impl Api {
+    fn new(base: &str, token: Option<String>) -> Result<Api> {
+        let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(300)).build()?;
+        Ok(Api { base: base.trim_end_matches('/').to_string(), token, http })
+    }
+    fn req(&self, method: reqwest::Method, path: &str) -> reqwest::blocking::RequestBuilder {
+        let r = self.http.request(method, format!("{}{path}", self.base));
+        match &self.token {
+            Some(t) => r.bearer_auth(t),
+            None => r,
+        }
+    }
+    fn check(r: reqwest::blocking::Response) -> Result<reqwest::blocking::Response> {
+        if r.status().is_success() {
+            return Ok(r);
+        }
+        let status = r.status();
+        let msg = r.json::<ApiError>().map(|e| e.error).unwrap_or_default();
+        bail!("coordinator answered {status}: {msg}")
+    }
+    fn status(&self, id: &str) -> Result<JobStatus> {
+        let r = self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}")).send()?;
+        Ok(Self::check(r)?.json()?)
+    }
+}
+
+/// The bundle of a scene: the scene file and every asset it reads, relative to its folder.
+fn bundle_files(scene_path: &Path) -> Result<(Bundle, Vec<(String, Vec<u8>)>, Scene)> {
+    let scene = Scene::load(scene_path, &[])?;
+    let dir = scene_path.parent().unwrap_or(Path::new(".")).canonicalize()?;
+    let mut paths = vec![scene_path.canonicalize()?];
+    paths.extend(scene.assets.iter().filter_map(|p| p.canonicalize().ok()));
+    let mut files = Vec::new();
+    let mut bundle = Bundle { scene: String::new(), files: Default::default() };
+    for (i, p) in paths.iter().enumerate() {
+        let rel = p
+            .strip_prefix(&dir)
+            .with_context(|| format!("{} is outside the scene's folder", p.display()))?
+            .to_string_lossy()
+            .replace('\\', "/");
+        let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+        let hash = blake3::hash(&bytes).to_hex().to_string();
+        if i == 0 {
+            bundle.scene = rel.clone();
+        }
+        bundle.files.insert(rel.clone(), hash);
+        files.push((rel, bytes));
+    }
+    Ok((bundle, files, scene))
+}
+
+pub fn submit(a: SubmitArgs) -> Result<()> {
+    let api = Api::new(&a.coordinator, a.token.clone())?;
+    let (bundle, files, scene) = bundle_files(&a.scene)?;
+    for (rel, bytes) in files {
+        let hash = &bundle.files[&rel];
+        let head = api.req(reqwest::Method::HEAD, &format!("/v1/files/{hash}")).send()?;
+        if head.status().is_success() {
+            continue;
+        }
+        Api::check(api.req(reqwest::Method::PUT, &format!("/v1/files/{hash}")).body(bytes).send()?)
+            .with_context(|| format!("uploading {rel}"))?;
+    }
+    let settings = JobSettings {
+        width: 0,
+        height: 0,
+        spp: a.spp.unwrap_or(scene.spp as u64),
+        tile_size: a.tile,
+        spp_per_chunk: a.spp_per_chunk,
+        seed: a.seed.unwrap_or(scene.seed),
+        priority: a.priority,
+    };
+    let spec = JobSpec { bundle, settings };
+    let key = blake3::hash(serde_json::to_string(&spec)?.as_bytes()).to_hex()[..32].to_string();
+    let key = format!("{key}-{}", std::process::id());
+    let r = api.req(reqwest::Method::POST, "/v1/jobs").header("Idempotency-Key", key).json(&spec).send()?;
+    let id = Api::check(r)?.json::<serde_json::Value>()?["id"].as_str().unwrap_or_default().to_string();
+    println!("{id}");
+    if !a.wait {
+        return Ok(());
+    }
+    let bar = indicatif::ProgressBar::new(1);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:40} {percent:>3}%  {human_pos}/{human_len} samples  {msg}",
+        )
+        .expect("static progress template"),
+    );
+    loop {
+        let st = api.status(&id)?;
+        bar.set_length(st.samples_total);
+        bar.set_position(st.samples_done);
+        bar.set_message(match st.eta_seconds {
+            Some(e) => format!("{:.0} samples/s, ETA {e:.0}s", st.samples_per_second),
+            None => String::new(),
+        });
+        match st.state {
+            JobState::Done => break,
+            JobState::Cancelled => bail!("job {id} was cancelled"),
+            _ => std::thread::sleep(Duration::from_millis(250)),
+        }
+    }
+    bar.finish_and_clear();
+    let r = Api::check(api.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/result.exr")).send()?)?;
+    let out = a.output.unwrap_or_else(|| PathBuf::from(format!("{id}.exr")));
+    std::fs::write(&out, r.bytes()?).with_context(|| format!("cannot write {}", out.display()))?;
+    eprintln!("wrote {}", out.display());
+    Ok(())
+}
+
+pub fn status(a: StatusArgs) -> Result<()> {
+    let api = Api::new(&a.coordinator, a.token)?;
+    let all: Vec<JobStatus> = match &a.job {
+        Some(id) => vec![api.status(id)?],
+        None => Api::check(api.req(reqwest::Method::GET, "/v1/jobs").send()?)?.json()?,
+    };
+    for s in all {
+        println!(
+            "{}  {:?}  {}/{} chunks, {}/{} samples, {:.0} samples/s{}{}",
+            s.id,
+            s.state,
+            s.chunks_done,
+            s.chunks_total,
+            s.samples_done,
+            s.samples_total,
+            s.samples_per_second,
+            s.eta_seconds.map(|e| format!(", ETA {e:.0}s")).unwrap_or_default(),
+            if s.errors.is_empty() { String::new() } else { format!(", {} errors", s.errors.len()) }
+        );
+    }
+    Ok(())
+}
