@@ -1,0 +1,273 @@
+//! The farm with real processes on 127.0.0.1: a coordinator and workers render a job whose
+//! result.exr is byte-identical to `furnace render` of the same job, also when a worker is
+//! killed mid-chunk and when the coordinator is killed and restarted mid-job; bad uploads are
+//! refused with the right status and change nothing. Every process started is killed on drop.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{scenes, scratch};
+
+const BIN: &str = env!("CARGO_BIN_EXE_furnace");
+
+/// Kills its process when dropped.
+struct Proc(Child);
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.0.kill().ok();
+        self.0.wait().ok();
+    }
+}
+
+/// Starts `furnace serve` on a free port; returns it and its base URL.
+fn coordinator(data: &Path, extra: &[&str], port: u16) -> (Proc, String) {
+    let bind = format!("127.0.0.1:{port}");
+    let mut child = Command::new(BIN)
+        .args(["serve", "--data-dir"])
+        .arg(data)
+        .args(["--bind", &bind])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start coordinator");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let url = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("coordinator said {line:?}"))
+        .to_string();
+    (Proc(child), url)
+}
+
+fn worker(url: &str, name: &str, cache: &Path) -> Proc {
+    Proc(
+        Command::new(BIN)
+            .args(["worker", "--coordinator", url, "--threads", "1", "--name", name, "--cache"])
+            .arg(cache)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start worker"),
+    )
+}
+
+/// The reference: `furnace render` of the same job on this machine.
+fn local_render(dir: &Path, scene: &str, spp: u32) -> Vec<u8> {
+    let out = dir.join("local.exr");
+    let st = Command::new(BIN)
+        .arg("render")
+        .arg(scenes().join(scene))
+        .args(["--spp", &spp.to_string(), "--threads", "2", "-o"])
+        .arg(&out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(st.success());
+    std::fs::read(out).unwrap()
+}
+
+fn submit(url: &str, scene: &str, spp: u32, chunk_spp: u32) -> String {
+    let out = Command::new(BIN)
+        .arg("submit")
+        .arg(scenes().join(scene))
+        .args(["--coordinator", url, "--spp", &spp.to_string(), "--tile", "16"])
+        .args(["--spp-per-chunk", &chunk_spp.to_string()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap().trim().to_string()
+}
+
+fn get(url: &str) -> (u16, Vec<u8>) {
+    let r = reqwest::blocking::get(url).unwrap();
+    (r.status().as_u16(), r.bytes().unwrap().to_vec())
+}
+
+fn status(url: &str, job: &str) -> serde_json::Value {
+    serde_json::from_slice(&get(&format!("{url}/v1/jobs/{job}")).1).unwrap()
+}
+
+fn wait_done(url: &str, job: &str, limit: Duration) -> Vec<u8> {
+    let t = Instant::now();
+    loop {
+        let s = status(url, job);
+        if s["state"] == "done" {
+            let (code, bytes) = get(&format!("{url}/v1/jobs/{job}/result.exr"));
+            assert_eq!(code, 200);
+            return bytes;
+        }
+        assert!(t.elapsed() < limit, "job not done in {limit:?}: {s}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+#[test]
+fn two_workers_render_the_same_bytes_as_furnace_render() {
+    let dir = scratch("farm2");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let _w1 = worker(&url, "w1", &dir.join("cache1"));
+    let _w2 = worker(&url, "w2", &dir.join("cache2"));
+    let job = submit(&url, "small.xml", 24, 8);
+    let farm = wait_done(&url, &job, Duration::from_secs(120));
+    assert!(farm == local_render(&dir, "small.xml", 24), "farm result differs from furnace render");
+    let s = status(&url, &job);
+    assert_eq!(s["chunks_done"], s["chunks_total"]);
+    assert_eq!(s["samples_done"], s["samples_total"]);
+    drop((_w1, _w2, _c));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_worker_killed_mid_chunk_and_a_coordinator_killed_mid_job_change_nothing() {
+    let dir = scratch("farmkill");
+    let data = dir.join("data");
+    let port = free_port();
+    let lease = ["--lease-seconds", "1"];
+    let (c, url) = coordinator(&data, &lease, port);
+    // Big chunks so that workers are caught inside one.
+    let job = submit(&url, "cbox.xml", 16, 8);
+    let mut w1 = worker(&url, "w1", &dir.join("cache1"));
+    let w2 = worker(&url, "w2", &dir.join("cache2"));
+    // Let some chunks finish, then kill w1 (SIGKILL) wherever it is.
+    let t = Instant::now();
+    while status(&url, &job)["chunks_done"].as_u64().unwrap() < 3 {
+        assert!(t.elapsed() < Duration::from_secs(120));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    w1.0.kill().unwrap();
+    w1.0.wait().unwrap();
+    // Then kill the coordinator (SIGKILL) and restart it on the same port and data.
+    while status(&url, &job)["chunks_done"].as_u64().unwrap() < 6 {
+        assert!(t.elapsed() < Duration::from_secs(180));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    drop(c);
+    std::thread::sleep(Duration::from_millis(300));
+    let (_c2, url2) = coordinator(&data, &lease, port);
+    assert_eq!(url, url2);
+    let farm = wait_done(&url, &job, Duration::from_secs(300));
+    assert!(farm == local_render(&dir, "cbox.xml", 16), "farm result differs after the kills");
+    drop(w2);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Acting as a worker by hand: a duplicate upload (409, ignored), an upload under a stale
+/// epoch (409), a partial of the wrong size (400), a partial full of NaN (400, float channels
+/// instead of the integer sums), a garbage body (400) and a lease request with a garbage body
+/// (400) each get a JSON error; then the right uploads finish the job, and its result is still
+/// byte-identical to `furnace render`.
+#[test]
+fn bad_uploads_are_refused_and_change_nothing() {
+    use furnace_proto::{encode_partial, Lease};
+    let dir = scratch("farmbad");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let job = submit(&url, "small.xml", 8, 8);
+    let scene = common::load("small.xml", &[]);
+    let http = reqwest::blocking::Client::new();
+    let lease = || -> Option<Lease> {
+        let r = http
+            .post(format!("{url}/v1/leases"))
+            .json(&serde_json::json!({"worker": "hand"}))
+            .send()
+            .unwrap();
+        (r.status() == 200).then(|| r.json().unwrap())
+    };
+    let put = |l: &Lease, epoch: u64, body: Vec<u8>| -> (u16, serde_json::Value) {
+        let r = http
+            .put(format!("{url}/v1/jobs/{}/chunks/{}/result?epoch={epoch}", l.job, l.chunk.id))
+            .body(body)
+            .send()
+            .unwrap();
+        let code = r.status().as_u16();
+        let bytes = r.bytes().unwrap();
+        (code, serde_json::from_slice(&bytes).unwrap_or(serde_json::Value::Null))
+    };
+    let render =
+        |l: &Lease| encode_partial(&furnace_worker::render_chunk(&scene, &l.chunk, l.settings.seed).0);
+
+    let a = lease().unwrap();
+    let good_a = render(&a);
+    // Garbage, NaN and wrong-size bodies: 400 with a JSON error, the lease still holds.
+    let (code, e) = put(&a, a.epoch, b"garbage".to_vec());
+    assert_eq!(code, 400, "{e}");
+    assert!(e["error"].as_str().unwrap().contains("zstd"), "{e}");
+    let nan = {
+        use exr::prelude::*;
+        let ch = SpecificChannels::rgb(|_: Vec2<usize>| (f32::NAN, f32::NAN, f32::NAN));
+        let mut buf = Vec::new();
+        Image::from_channels((16, 16), ch)
+            .write()
+            .non_parallel()
+            .to_buffered(std::io::Cursor::new(&mut buf))
+            .unwrap();
+        zstd::bulk::compress(&buf, 1).unwrap()
+    };
+    let (code, e) = put(&a, a.epoch, nan);
+    assert_eq!(code, 400, "{e}");
+    let wrong = encode_partial(&furnace_core::Accum::new(0, 0, 3, 3));
+    let (code, e) = put(&a, a.epoch, wrong);
+    assert_eq!(code, 400, "{e}");
+    assert!(e["error"].as_str().unwrap().contains("partial covers"), "{e}");
+    // The right partial, then the same again: merged once.
+    assert_eq!(put(&a, a.epoch, good_a.clone()).0, 204);
+    let (code, e) = put(&a, a.epoch, good_a);
+    assert_eq!(code, 409, "{e}");
+    assert!(e["error"].as_str().unwrap().contains("already merged"), "{e}");
+    // A stale epoch.
+    let b = lease().unwrap();
+    let (code, e) = put(&b, b.epoch - 1, render(&b));
+    assert_eq!(code, 409, "{e}");
+    assert!(e["error"].as_str().unwrap().contains("stale"), "{e}");
+    // Garbage lease request.
+    let r = http.post(format!("{url}/v1/leases")).body("{").send().unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    // Finish the job properly.
+    assert_eq!(put(&b, b.epoch, render(&b)).0, 204);
+    while let Some(l) = lease() {
+        assert_eq!(put(&l, l.epoch, render(&l)).0, 204);
+    }
+    let farm = wait_done(&url, &job, Duration::from_secs(30));
+    assert!(farm == local_render(&dir, "small.xml", 8), "result changed by the bad uploads");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// With a token, requests without it get 401 and a JSON error; with it, 200. Binding beyond
+/// loopback without a token refuses to start.
+#[test]
+fn the_token_is_required_when_set_and_off_loopback() {
+    let dir = scratch("farmauth");
+    let (_c, url) = coordinator(&dir.join("data"), &["--token", "s3cret"], 0);
+    let http = reqwest::blocking::Client::new();
+    let r = http.get(format!("{url}/v1/jobs")).send().unwrap();
+    assert_eq!(r.status().as_u16(), 401);
+    let e: serde_json::Value = r.json().unwrap();
+    assert!(e["error"].as_str().unwrap().contains("token"));
+    assert_eq!(
+        http.get(format!("{url}/v1/jobs")).bearer_auth("wrong").send().unwrap().status().as_u16(),
+        401
+    );
+    assert_eq!(
+        http.get(format!("{url}/v1/jobs")).bearer_auth("s3cret").send().unwrap().status().as_u16(),
+        200
+    );
+    let out = Command::new(BIN)
+        .args(["serve", "--bind", "0.0.0.0:0", "--data-dir"])
+        .arg(dir.join("data2"))
+        .env_remove("FURNACE_TOKEN")
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("needs a shared token"));
+    std::fs::remove_dir_all(&dir).ok();
+}
