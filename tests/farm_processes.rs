@@ -271,3 +271,85 @@ fn the_token_is_required_when_set_and_off_loopback() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("needs a shared token"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The control surface: Idempotency-Key returns the same job; pause stops hand-outs and resume
+/// restarts them; a worker whose chunks fail three times gets no more of that job while
+/// another still does; preview.png is a PNG; the event stream carries status JSON; cancel
+/// ends the job.
+#[test]
+fn idempotency_pause_resume_failures_preview_events_and_cancel() {
+    use furnace_proto::{JobSpec, Lease};
+    let dir = scratch("farmctl");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let job = submit(&url, "small.xml", 8, 4);
+    let http = reqwest::blocking::Client::new();
+    // Same spec under the same key: the same job, 201 then 200.
+    let spec: JobSpec = {
+        let s = status(&url, &job);
+        let b: furnace_proto::Bundle = serde_json::from_slice(
+            &get(&format!("{url}/v1/bundles/{}", furnace_proto::Bundle::hash(&bundle_of(&url, &job)))).1,
+        )
+        .unwrap();
+        JobSpec { bundle: b, settings: serde_json::from_value(s["settings"].clone()).unwrap() }
+    };
+    let post =
+        || http.post(format!("{url}/v1/jobs")).header("Idempotency-Key", "k1").json(&spec).send().unwrap();
+    let (r1, r2) = (post(), post());
+    assert_eq!((r1.status().as_u16(), r2.status().as_u16()), (201, 200));
+    let id1: serde_json::Value = r1.json().unwrap();
+    let id2: serde_json::Value = r2.json().unwrap();
+    assert_eq!(id1["id"], id2["id"]);
+    http.post(format!("{url}/v1/jobs/{}/cancel", id1["id"].as_str().unwrap())).send().unwrap();
+
+    let lease = |w: &str| -> Option<Lease> {
+        let r = http.post(format!("{url}/v1/leases")).json(&serde_json::json!({"worker": w})).send().unwrap();
+        (r.status() == 200).then(|| r.json().unwrap())
+    };
+    assert_eq!(http.post(format!("{url}/v1/jobs/{job}/pause")).send().unwrap().status().as_u16(), 200);
+    assert!(lease("a").is_none(), "a paused job hands out nothing");
+    assert_eq!(http.post(format!("{url}/v1/jobs/{job}/resume")).send().unwrap().status().as_u16(), 200);
+    for k in 0..3 {
+        let l = lease("bad").expect("work for the failing worker");
+        let r = http
+            .post(format!("{url}/v1/jobs/{job}/chunks/{}/fail", l.chunk.id))
+            .json(&serde_json::json!({"epoch": l.epoch, "error": format!("failure {k}")}))
+            .send()
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 204);
+    }
+    assert!(lease("bad").is_none(), "three failures keep the worker off the job");
+    assert!(lease("good").is_some(), "other workers still get it");
+    let s = status(&url, &job);
+    assert!(s["errors"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|e| e.as_str().unwrap().contains("no more of this job")));
+    let (code, png) = get(&format!("{url}/v1/jobs/{job}/preview.png"));
+    assert_eq!(code, 200);
+    assert_eq!(&png[1..4], b"PNG");
+    assert_eq!(http.post(format!("{url}/v1/jobs/{job}/cancel")).send().unwrap().status().as_u16(), 200);
+    let events = http.get(format!("{url}/v1/jobs/{job}/events")).send().unwrap().text().unwrap();
+    let data = events.lines().find_map(|l| l.strip_prefix("data:")).expect("an event");
+    let ev: serde_json::Value = serde_json::from_str(data.trim()).unwrap();
+    assert_eq!(ev["state"], "cancelled");
+    assert_eq!(get(&format!("{url}/v1/jobs/{job}/result.exr")).0, 409);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The bundle of a submitted job, rebuilt from the scene folder as `furnace submit` does.
+fn bundle_of(_url: &str, _job: &str) -> furnace_proto::Bundle {
+    let scene = common::load("small.xml", &[]);
+    let dir = scenes().canonicalize().unwrap();
+    let mut files = std::collections::BTreeMap::new();
+    let mut add = |p: &Path| {
+        let p = p.canonicalize().unwrap();
+        let rel = p.strip_prefix(&dir).unwrap().to_string_lossy().to_string();
+        files.insert(rel, blake3::hash(&std::fs::read(&p).unwrap()).to_hex().to_string());
+    };
+    add(&scenes().join("small.xml"));
+    for a in &scene.assets {
+        add(a);
+    }
+    furnace_proto::Bundle { scene: "small.xml".into(), files }
+}
