@@ -15,9 +15,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use furnace_core::{Accum, Scene};
-use furnace_proto::{
-    chunk_plan, decode_partial, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus, Lease,
-};
+use furnace_proto::{chunk_plan, decode_partial, ChunkSpec, JobSpec, JobState, JobStatus, Lease};
 
 /// Merges between checkpoints.
 const CHECKPOINT_EVERY: usize = 256;
@@ -637,6 +635,3 @@ fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Accum), Stri
     let acc = decode_partial(&bytes[8 + n..], max).map_err(|e| e.to_string())?;
     Ok((ids, acc))
 }
-
-#[allow(dead_code)]
-fn _settings(_: &JobSettings) {}

@@ -42,7 +42,7 @@ fn channel_names() -> Vec<String> {
 /// Encodes `acc` (zstd level 1 over an uncompressed EXR).
 pub fn encode_partial(acc: &Accum) -> Vec<u8> {
     let names = channel_names();
-    let mut planes: Vec<Vec<u32>> = vec![Vec::with_capacity(acc.pixels.len()); WORDS];
+    let mut planes: Vec<Vec<u32>> = (0..WORDS).map(|_| Vec::with_capacity(acc.pixels.len())).collect();
     for p in &acc.pixels {
         for (plane, w) in planes.iter_mut().zip(pixel_words(p)) {
             plane.push(w);
