@@ -57,6 +57,8 @@ enum ChunkState {
 struct Job {
     id: String,
     spec: JobSpec,
+    /// `spec.bundle.hash()`, computed once: every lease carries it.
+    bundle_hash: String,
     state: JobState,
     plan: Vec<ChunkSpec>,
     chunks: Vec<ChunkState>,
@@ -251,6 +253,7 @@ impl Coordinator {
         let n = plan.len();
         Ok(Job {
             id,
+            bundle_hash: spec.bundle.hash(),
             accum: Accum::new(0, 0, w, h),
             margin: scene.film.filter.margin(),
             render_plan: scene.plan.to_string(),
@@ -426,7 +429,7 @@ impl Coordinator {
             chunk: job.plan[chunk as usize],
             epoch,
             settings: job.spec.settings.clone(),
-            bundle_hash: job.spec.bundle.hash(),
+            bundle_hash: job.bundle_hash.clone(),
             deadline_ms: ms,
         })
     }
