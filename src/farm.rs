@@ -41,6 +41,9 @@ pub struct WorkerArgs {
     /// Render threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Chunks rendered at once on those threads (2 keeps them busy across chunk ends).
+    #[arg(long, default_value_t = 2)]
+    pub slots: usize,
     #[arg(long, env = "FURNACE_TOKEN")]
     pub token: Option<String>,
     /// Name shown in job status (default: host and process id).
@@ -118,6 +121,8 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     let mut coord = furnace_coordinator::Coordinator::open(&a.data_dir)
         .with_context(|| format!("cannot open data folder {}", a.data_dir.display()))?;
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
+    // Local workers take the scene the coordinator loaded to check the job.
+    coord.keep_scenes = a.local_workers > 0;
     let state = furnace_coordinator::AppState { coord: Arc::new(Mutex::new(coord)), token: a.token.clone() };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
@@ -130,14 +135,14 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         tracing::info!("coordinator on http://{addr}, data in {}", a.data_dir.display());
         let stop = Arc::new(AtomicBool::new(false));
         let mut locals = Vec::new();
+        let link = Arc::new(furnace_worker::LocalLink::new(state.coord.clone()));
         for i in 0..a.local_workers {
             let cfg = furnace_worker::WorkerConfig {
-                coordinator: format!("http://{addr}"),
-                token: a.token.clone(),
+                link: link.clone(),
                 threads: a.worker_threads.unwrap_or(0),
+                slots: 2,
                 name: format!("local-{i}"),
-                cache: a.data_dir.join("worker-cache"),
-                poll: Duration::from_millis(200),
+                poll: Duration::from_millis(100),
                 stop: stop.clone(),
                 exit_when_idle: false,
             };
@@ -161,12 +166,13 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
     let stop = Arc::new(AtomicBool::new(false));
     stop_on_signal(stop.clone());
     let host = std::fs::read_to_string("/etc/hostname").map(|s| s.trim().to_string()).unwrap_or_default();
+    let cache = a.cache.unwrap_or_else(|| std::env::temp_dir().join("furnace-cache"));
+    let link = furnace_worker::HttpLink::new(&a.coordinator, a.token, cache)?;
     let cfg = furnace_worker::WorkerConfig {
-        coordinator: a.coordinator,
-        token: a.token,
+        link: Arc::new(link),
         threads: a.threads.unwrap_or(0),
+        slots: a.slots,
         name: a.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
-        cache: a.cache.unwrap_or_else(|| std::env::temp_dir().join("furnace-cache")),
         poll: Duration::from_millis(500),
         stop,
         exit_when_idle: a.exit_when_idle,

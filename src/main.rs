@@ -1,11 +1,16 @@
 //! `furnace`: the one binary. It parses arguments and calls the libraries.
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use furnace_core::{render_image, Image, Scene};
+use furnace_coordinator::Coordinator;
+use furnace_core::{Image, Scene};
+use furnace_proto::{JobSettings, JobState};
+use furnace_worker::{LocalLink, WorkerConfig};
 
 mod farm;
 
@@ -135,11 +140,6 @@ fn render(a: RenderArgs) -> Result<()> {
     }
     let seed = a.seed.unwrap_or(scene.seed);
     let out = a.output.clone().unwrap_or_else(|| default_output(&a.scene));
-    let mut builder = rayon::ThreadPoolBuilder::new();
-    if let Some(n) = a.threads {
-        builder = builder.num_threads(n.max(1));
-    }
-    let pool = builder.build().context("cannot start render threads")?;
     let (w, h) = (scene.film.crop_width, scene.film.crop_height);
     let total = w as u64 * h as u64 * spp;
     let bar = indicatif::ProgressBar::new(total);
@@ -149,18 +149,51 @@ fn render(a: RenderArgs) -> Result<()> {
         )
         .expect("static progress template"),
     );
+    // The farm in one process: a coordinator that stores nothing and one worker on all threads.
     let t1 = Instant::now();
-    let (acc, stats) =
-        pool.install(|| render_image(&scene, spp, seed, a.tile, 64, &|done| bar.set_position(done)));
+    let settings = JobSettings {
+        width: w,
+        height: h,
+        spp,
+        tile_size: a.tile.max(1),
+        spp_per_chunk: 64,
+        seed,
+        priority: 0,
+    };
+    let coord = Arc::new(Mutex::new(Coordinator::ephemeral()?));
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let job = lock().submit_scene(Arc::new(scene), settings)?;
+    let link = Arc::new(LocalLink::new(coord.clone()));
+    let threads = a.threads.unwrap_or(0);
+    let cfg = WorkerConfig {
+        link: link.clone(),
+        threads,
+        slots: 2,
+        name: "local".into(),
+        poll: Duration::from_millis(10),
+        stop: Arc::new(AtomicBool::new(false)),
+        exit_when_idle: true,
+    };
+    let worker = std::thread::spawn(move || furnace_worker::run(cfg));
+    while !worker.is_finished() {
+        bar.set_position(lock().status(&job)?.samples_done);
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    worker.join().map_err(|_| anyhow::anyhow!("the render worker panicked"))??;
     bar.finish_and_clear();
+    let status = lock().status(&job)?;
+    if status.state != JobState::Done {
+        bail!("the render stopped unfinished: {}", status.errors.join("; "));
+    }
     let secs = t1.elapsed().as_secs_f64();
-    let image = acc.develop();
+    let stats = link.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let threads = if threads == 0 { rayon::current_num_threads() } else { threads };
+    let image = lock().image(&job)?;
     image.write_exr(&out)?;
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;
     tracing::info!(
-        "rendered {w}x{h} at {spp} spp in {secs:.2}s on {} threads: {:.3} Msamples/s",
-        pool.current_num_threads(),
+        "rendered {w}x{h} at {spp} spp in {secs:.2}s on {threads} threads: {:.3} Msamples/s",
         total as f64 / secs / 1e6
     );
     tracing::info!(

@@ -11,7 +11,7 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
 use axum::{Json, Router};
-use furnace_proto::{is_hash, ApiError, Heartbeat, JobSpec, LeaseRequest};
+use furnace_proto::{decode_partial, is_hash, ApiError, Heartbeat, JobSpec, LeaseRequest};
 use serde::Deserialize;
 
 use crate::state::{CoordError, Coordinator};
@@ -256,17 +256,9 @@ async fn upload(
     let coord = s.coord.clone();
     tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
         // Decode outside the lock: it is the slow part.
-        let (acc, path) =
-            coord.lock().unwrap_or_else(|e| e.into_inner()).check_upload(&id, chunk, epoch, &body)?;
-        coord.lock().unwrap_or_else(|e| e.into_inner()).accept_upload(
-            &id,
-            chunk,
-            epoch,
-            &body,
-            &acc,
-            &path,
-            Instant::now(),
-        )
+        let max = coord.lock().unwrap_or_else(|e| e.into_inner()).max_partial;
+        let acc = decode_partial(&body, max).map_err(|e| CoordError::BadRequest(e.to_string()))?;
+        crate::state::accept_partial(&coord, &id, chunk, epoch, &acc, Some(&body))
     })
     .await
     .map_err(|e| CoordError::Internal(e.to_string()))??;

@@ -12,10 +12,14 @@
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use furnace_core::{Accum, Scene};
-use furnace_proto::{chunk_plan, decode_partial, ChunkSpec, JobSpec, JobState, JobStatus, Lease};
+use furnace_proto::{
+    chunk_plan, decode_partial, encode_partial, Bundle, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus,
+    Lease,
+};
 
 /// Merges between checkpoints.
 const CHECKPOINT_EVERY: usize = 256;
@@ -75,6 +79,8 @@ struct Job {
     render_plan: String,
     failures: HashMap<String, u32>,
     errors: Vec<String>,
+    /// The loaded scene, kept for workers in this process (`furnace render`, `--local-workers`).
+    scene: Option<Arc<Scene>>,
     workers: BTreeMap<String, Instant>,
     /// (time, samples) of recent merges, for the rate.
     recent: VecDeque<(Instant, u64)>,
@@ -107,12 +113,16 @@ impl Job {
 
 pub struct Coordinator {
     data: PathBuf,
+    /// Whether jobs, partials and results are stored in `data` (false: in memory only).
+    persist: bool,
     db: rusqlite::Connection,
     jobs: BTreeMap<String, Job>,
     next_epoch: u64,
     pub lease_duration: Duration,
     /// Largest decompressed partial accepted (bytes).
     pub max_partial: usize,
+    /// Keep each job's loaded scene for workers in this process.
+    pub keep_scenes: bool,
 }
 
 fn now_secs() -> u64 {
@@ -157,11 +167,13 @@ impl Coordinator {
         db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('boot', ?1)", [boot])?;
         let mut c = Coordinator {
             data: data.to_path_buf(),
+            persist: true,
             db,
             jobs: BTreeMap::new(),
             next_epoch: (boot as u64) << 32,
             lease_duration: Duration::from_secs(30),
             max_partial: 256 << 20,
+            keep_scenes: false,
         };
         let rows: Vec<(String, String, String, i64)> = {
             let mut st = c.db.prepare("SELECT id, spec, state, created FROM jobs ORDER BY created, id")?;
@@ -177,6 +189,27 @@ impl Coordinator {
             c.jobs.insert(id, job);
         }
         Ok(c)
+    }
+
+    /// A coordinator that stores nothing: the one `furnace render` runs in its own process.
+    /// Jobs are submitted with [`Coordinator::submit_scene`]; everything lives in memory.
+    pub fn ephemeral() -> Result<Coordinator, CoordError> {
+        let db = rusqlite::Connection::open_in_memory()?;
+        db.execute_batch(
+            "CREATE TABLE jobs (
+                id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
+                idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);",
+        )?;
+        Ok(Coordinator {
+            data: PathBuf::new(),
+            persist: false,
+            db,
+            jobs: BTreeMap::new(),
+            next_epoch: 1 << 32,
+            lease_duration: Duration::from_secs(30),
+            max_partial: 256 << 20,
+            keep_scenes: true,
+        })
     }
 
     pub fn data_dir(&self) -> &Path {
@@ -224,14 +257,19 @@ impl Coordinator {
         Ok((dir, scene))
     }
 
-    fn new_job(
+    fn new_job(&self, id: String, spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
+        let (_, scene) = self.load_bundle(&spec)?;
+        self.job_from_scene(id, spec, state, created, Arc::new(scene))
+    }
+
+    fn job_from_scene(
         &self,
         id: String,
         mut spec: JobSpec,
         state: JobState,
         created: u64,
+        scene: Arc<Scene>,
     ) -> Result<Job, CoordError> {
-        let (_, scene) = self.load_bundle(&spec)?;
         let s = &mut spec.settings;
         let (w, h) = (scene.film.crop_width, scene.film.crop_height);
         if s.width == 0 && s.height == 0 {
@@ -271,6 +309,7 @@ impl Coordinator {
             recent: VecDeque::new(),
             samples_done: 0,
             created,
+            scene: self.keep_scenes.then_some(scene),
         })
     }
 
@@ -336,12 +375,31 @@ impl Coordinator {
             blake3::hash(seed.as_bytes()).to_hex()[..16].to_string()
         };
         let job = self.new_job(id.clone(), spec, JobState::Queued, created)?;
+        self.insert_job(job, key)
+    }
+
+    /// Submits a job for a scene already loaded in this process. Such a job has no bundle and
+    /// is not stored: it lives as long as the process (`furnace render`).
+    pub fn submit_scene(&mut self, scene: Arc<Scene>, settings: JobSettings) -> Result<String, CoordError> {
+        let created = now_secs();
+        let id = format!("local-{}", self.jobs.len());
+        let spec = JobSpec { bundle: Bundle { scene: String::new(), files: BTreeMap::new() }, settings };
+        let mut job = self.job_from_scene(id.clone(), spec, JobState::Queued, created, scene.clone())?;
+        job.scene = Some(scene);
+        self.jobs.insert(id.clone(), job);
+        Ok(id)
+    }
+
+    fn insert_job(&mut self, job: Job, key: Option<&str>) -> Result<(String, bool), CoordError> {
+        let (id, created) = (job.id.clone(), job.created);
         let spec_json = serde_json::to_string(&job.spec).map_err(|e| CoordError::Internal(e.to_string()))?;
         self.db.execute(
             "INSERT INTO jobs (id, spec, state, idempotency_key, created) VALUES (?1, ?2, 'queued', ?3, ?4)",
             rusqlite::params![id, spec_json, key, created as i64],
         )?;
-        std::fs::create_dir_all(job.dir(&self.data).join("partials"))?;
+        if self.persist {
+            std::fs::create_dir_all(job.dir(&self.data).join("partials"))?;
+        }
         self.jobs.insert(id.clone(), job);
         Ok((id, true))
     }
@@ -479,19 +537,17 @@ impl Coordinator {
         Ok(())
     }
 
-    /// Checks an upload against the lease, decodes it and checks its rectangle. Returns the
-    /// partial and where to store it. Does not change state.
-    pub fn check_upload(
+    /// Checks a partial against its lease and its chunk's rectangle and sample count. Returns
+    /// where to store it first, when this coordinator stores partials. Changes nothing.
+    pub fn check_partial(
         &mut self,
         job: &str,
         chunk: u32,
         epoch: u64,
-        body: &[u8],
-    ) -> Result<(Accum, PathBuf), CoordError> {
-        let max = self.max_partial;
-        let data = self.data.clone();
+        acc: &Accum,
+    ) -> Result<Option<PathBuf>, CoordError> {
+        let (data, persist) = (self.data.clone(), self.persist);
         let j = self.leased(job, chunk, epoch)?;
-        let acc = decode_partial(body, max).map_err(|e| CoordError::BadRequest(e.to_string()))?;
         let s = &j.spec.settings;
         let r = &j.plan[chunk as usize].region;
         let m = j.margin;
@@ -512,23 +568,21 @@ impl Coordinator {
                 acc.sample_count()
             )));
         }
-        Ok((acc, j.dir(&data).join("partials").join(format!("{chunk}.zst"))))
+        Ok(persist.then(|| j.dir(&data).join("partials").join(format!("{chunk}.zst"))))
     }
 
-    /// Stores (durably) and merges a checked partial; at most once per chunk.
-    pub fn accept_upload(
+    /// Merges a checked (and, when this coordinator stores partials, stored) partial; at most
+    /// once per chunk.
+    fn merge_partial(
         &mut self,
         job: &str,
         chunk: u32,
         epoch: u64,
-        body: &[u8],
         acc: &Accum,
-        path: &Path,
         now: Instant,
     ) -> Result<(), CoordError> {
         self.leased(job, chunk, epoch)?;
-        write_atomic(path, body)?;
-        let data = self.data.clone();
+        let (data, persist) = (self.data.clone(), self.persist);
         let j = self.job_mut(job)?;
         j.accum.merge(acc);
         j.merged.insert(chunk);
@@ -541,17 +595,24 @@ impl Coordinator {
         }
         j.since_checkpoint += 1;
         let finished = j.merged.len() == j.plan.len();
-        if finished || j.since_checkpoint >= CHECKPOINT_EVERY {
+        if persist && (finished || j.since_checkpoint >= CHECKPOINT_EVERY) {
             checkpoint(j, &data)?;
         }
         if finished {
-            let dir = j.dir(&data);
-            let img = j.accum.develop();
-            img.write_exr(&dir.join("result.exr")).map_err(|e| CoordError::Internal(e.to_string()))?;
+            if persist {
+                let img = j.accum.develop();
+                img.write_exr(&j.dir(&data).join("result.exr"))
+                    .map_err(|e| CoordError::Internal(e.to_string()))?;
+            }
             self.set_state(job, JobState::Done)?;
             tracing::info!(job, "job done");
         }
         Ok(())
+    }
+
+    /// The scene of a job, when this coordinator keeps scenes.
+    pub fn job_scene(&self, id: &str) -> Option<Arc<Scene>> {
+        self.jobs.get(id)?.scene.clone()
     }
 
     pub fn status(&self, id: &str) -> Result<JobStatus, CoordError> {
@@ -608,6 +669,30 @@ impl Coordinator {
         std::fs::read(self.data.join("bundles").join(format!("{hash}.json")))
             .map_err(|_| CoordError::NotFound(format!("no bundle {hash}")))
     }
+}
+
+/// Accepts a partial for a leased chunk: checks it, stores it durably (when the coordinator
+/// stores partials) without holding the lock, then merges it. `encoded` is the partial as
+/// uploaded, if it came over the wire. Every worker, remote or in this process, goes through here.
+pub fn accept_partial(
+    coord: &Mutex<Coordinator>,
+    job: &str,
+    chunk: u32,
+    epoch: u64,
+    acc: &Accum,
+    encoded: Option<&[u8]>,
+) -> Result<(), CoordError> {
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let path = lock().check_partial(job, chunk, epoch, acc)?;
+    if let Some(path) = path {
+        // Chunks are deterministic: a partial stored by a lease that loses the race below holds
+        // the same bytes as the one merged, and a restart merges each chunk at most once.
+        match encoded {
+            Some(bytes) => write_atomic(&path, bytes)?,
+            None => write_atomic(&path, &encode_partial(acc))?,
+        }
+    }
+    lock().merge_partial(job, chunk, epoch, acc, Instant::now())
 }
 
 /// Writes the job's checkpoint (merged chunk ids and accumulation) and drops the partials in it.

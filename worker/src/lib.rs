@@ -1,14 +1,17 @@
 //! Furnace's worker: pulls chunk leases from a coordinator, fetches the scene bundle (cached
 //! on disk by hash), renders the chunk on all its threads, heartbeats while it renders, and
 //! uploads the partial with retries. It waits out an unreachable coordinator, and when asked to
-//! stop it finishes the chunk in hand, uploads it and exits.
+//! stop it finishes the chunks in hand, uploads them and exits. `furnace render` runs this same
+//! worker against a coordinator in its own process ([`LocalLink`]).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{mpsc, Arc};
+use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
+use furnace_coordinator::state::accept_partial;
+use furnace_coordinator::{CoordError, Coordinator};
 use furnace_core::{render_region, render_region_parallel, Accum, Scene, Stats};
 use furnace_proto::{encode_partial, ApiError, Bundle, ChunkSpec, Lease, LeaseRequest};
 use reqwest::blocking::{Client, RequestBuilder, Response};
@@ -29,27 +32,42 @@ pub enum WorkerError {
     Cache { path: String, err: std::io::Error },
 }
 
+/// Where a worker gets its chunks and sends its results: a coordinator over HTTP
+/// ([`HttpLink`]) or one in the same process ([`LocalLink`]). The worker's loop is the same.
+pub trait Link: Send + Sync {
+    /// The next chunk, `None` when there is no work; `Err` when the coordinator is unreachable.
+    fn lease(&self, worker: &str) -> Result<Option<Lease>, String>;
+    /// Extends the lease; false when it is no longer this worker's.
+    fn heartbeat(&self, lease: &Lease) -> bool;
+    /// The lease's scene, loaded.
+    fn scene(&self, lease: &Lease) -> Result<Arc<Scene>, String>;
+    fn upload(&self, lease: &Lease, acc: &Accum, stats: &Stats) -> Uploaded;
+    /// Reports that the chunk could not be rendered.
+    fn fail(&self, lease: &Lease, error: &str);
+}
+
+pub enum Uploaded {
+    Accepted,
+    /// Refused for good (stale lease, duplicate, bad partial): drop it.
+    Refused(String),
+    /// Not delivered (coordinator unreachable or failing): try again.
+    Retry(String),
+}
+
 pub struct WorkerConfig {
-    /// Base URL, e.g. `http://127.0.0.1:8640`.
-    pub coordinator: String,
-    pub token: Option<String>,
+    pub link: Arc<dyn Link>,
+    /// Render threads (0: all cores).
     pub threads: usize,
+    /// Chunks in flight at once, sharing the threads: while one chunk's last rows render or
+    /// its result uploads, the other keeps the threads busy.
+    pub slots: usize,
     pub name: String,
-    /// Scene bundles, cached by hash.
-    pub cache: PathBuf,
     /// Wait between polls when there is no work.
     pub poll: Duration,
     /// Set to stop after the chunk in hand.
     pub stop: Arc<AtomicBool>,
     /// Stop when the coordinator has no work (instead of polling on).
     pub exit_when_idle: bool,
-}
-
-struct Worker {
-    cfg: WorkerConfig,
-    http: Client,
-    pool: rayon::ThreadPool,
-    scenes: HashMap<String, Arc<Scene>>,
 }
 
 /// Runs the worker until stopped (or idle, with `exit_when_idle`). Returns chunks rendered.
@@ -59,37 +77,88 @@ pub fn run(cfg: WorkerConfig) -> Result<u64, WorkerError> {
         .thread_name(|i| format!("render-{i}"))
         .build()
         .map_err(|e| WorkerError::Pool(e.to_string()))?;
-    let http = Client::builder()
-        .timeout(Duration::from_secs(120))
-        .build()
-        .map_err(|e| WorkerError::Client(e.to_string()))?;
-    std::fs::create_dir_all(&cfg.cache)
-        .map_err(|err| WorkerError::Cache { path: cfg.cache.display().to_string(), err })?;
-    let mut w = Worker { cfg, http, pool, scenes: HashMap::new() };
+    let done = std::thread::scope(|s| {
+        let slots: Vec<_> = (0..cfg.slots.max(1)).map(|_| s.spawn(|| slot(&cfg, &pool))).collect();
+        slots.into_iter().map(|h| h.join().unwrap_or(0)).sum()
+    });
+    Ok(done)
+}
+
+/// One chunk at a time: lease, render, upload.
+fn slot(cfg: &WorkerConfig, pool: &rayon::ThreadPool) -> u64 {
     let mut done = 0;
     let mut backoff = Backoff::new();
-    while !w.cfg.stop.load(Ordering::SeqCst) {
-        match w.lease() {
+    while !cfg.stop.load(Ordering::SeqCst) {
+        match cfg.link.lease(&cfg.name) {
             Ok(Some(lease)) => {
                 backoff.reset();
-                if w.work(&lease) {
+                if work(cfg, pool, &lease) {
                     done += 1;
                 }
             }
             Ok(None) => {
-                if w.cfg.exit_when_idle {
+                if cfg.exit_when_idle {
                     break;
                 }
-                sleep_unless_stopped(w.cfg.poll, &w.cfg.stop);
+                sleep_unless_stopped(cfg.poll, &cfg.stop);
             }
             Err(e) => {
                 let d = backoff.next();
                 tracing::warn!("coordinator unreachable ({e}); retrying in {:.1} s", d.as_secs_f64());
-                sleep_unless_stopped(d, &w.cfg.stop);
+                sleep_unless_stopped(d, &cfg.stop);
             }
         }
     }
-    Ok(done)
+    done
+}
+
+/// Renders and uploads one leased chunk. Returns whether the upload was accepted.
+fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
+    let link = &*cfg.link;
+    let scene = match link.scene(lease) {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::error!(job = %lease.job, chunk = lease.chunk.id, "{e}");
+            link.fail(lease, &e);
+            return false;
+        }
+    };
+    let t = std::time::Instant::now();
+    // Heartbeats while rendering, a third of the lease apart.
+    let (tx, rx) = mpsc::channel::<()>();
+    let every = Duration::from_millis((lease.deadline_ms / 3).max(50));
+    let (acc, st) = std::thread::scope(|s| {
+        s.spawn(move || {
+            while let Err(mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
+                if !link.heartbeat(lease) {
+                    break;
+                }
+            }
+        });
+        let r = pool.install(|| render_region_parallel(&scene, &lease.chunk.region, lease.settings.seed));
+        drop(tx);
+        r
+    });
+    tracing::debug!(
+        job = %lease.job,
+        chunk = lease.chunk.id,
+        samples = lease.chunk.region.samples(),
+        dropped = st.dropped,
+        "rendered in {:.2} s",
+        t.elapsed().as_secs_f64()
+    );
+    let mut backoff = Backoff::new();
+    loop {
+        match link.upload(lease, &acc, &st) {
+            Uploaded::Accepted => return true,
+            Uploaded::Refused(e) => {
+                tracing::warn!(job = %lease.job, chunk = lease.chunk.id, "upload refused: {e}");
+                return false;
+            }
+            Uploaded::Retry(e) => tracing::warn!("upload failed ({e}); retrying"),
+        }
+        std::thread::sleep(backoff.next());
+    }
 }
 
 fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
@@ -123,101 +192,79 @@ fn error_text(r: Response) -> String {
     }
 }
 
-impl Worker {
+/// A coordinator in the same process: leases and partials go through the same
+/// [`Coordinator`] calls as the HTTP API's, without encoding or sockets.
+pub struct LocalLink {
+    pub coord: Arc<Mutex<Coordinator>>,
+    /// Render statistics of every accepted chunk.
+    pub stats: Mutex<Stats>,
+}
+
+impl LocalLink {
+    pub fn new(coord: Arc<Mutex<Coordinator>>) -> LocalLink {
+        LocalLink { coord, stats: Mutex::new(Stats::default()) }
+    }
+    fn lock(&self) -> std::sync::MutexGuard<'_, Coordinator> {
+        self.coord.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl Link for LocalLink {
+    fn lease(&self, worker: &str) -> Result<Option<Lease>, String> {
+        Ok(self.lock().lease(worker, std::time::Instant::now()))
+    }
+    fn heartbeat(&self, l: &Lease) -> bool {
+        self.lock().heartbeat(&l.job, l.chunk.id, l.epoch, std::time::Instant::now()).is_ok()
+    }
+    fn scene(&self, l: &Lease) -> Result<Arc<Scene>, String> {
+        self.lock().job_scene(&l.job).ok_or_else(|| format!("job {} has no scene in this process", l.job))
+    }
+    fn upload(&self, l: &Lease, acc: &Accum, stats: &Stats) -> Uploaded {
+        match accept_partial(&self.coord, &l.job, l.chunk.id, l.epoch, acc, None) {
+            Ok(()) => {
+                self.stats.lock().unwrap_or_else(|e| e.into_inner()).merge(stats);
+                Uploaded::Accepted
+            }
+            Err(CoordError::Internal(e)) => Uploaded::Retry(e),
+            Err(e) => Uploaded::Refused(e.to_string()),
+        }
+    }
+    fn fail(&self, l: &Lease, error: &str) {
+        let _ = self.lock().fail(&l.job, l.chunk.id, l.epoch, error);
+    }
+}
+
+/// A coordinator over HTTP. Scene bundles are cached on disk by hash and in memory once loaded.
+pub struct HttpLink {
+    base: String,
+    token: Option<String>,
+    http: Client,
+    cache: PathBuf,
+    scenes: Mutex<HashMap<String, Arc<Scene>>>,
+}
+
+impl HttpLink {
+    /// `base` is e.g. `http://127.0.0.1:8640`; `cache` holds scene bundles by hash.
+    pub fn new(base: &str, token: Option<String>, cache: PathBuf) -> Result<HttpLink, WorkerError> {
+        let http = Client::builder()
+            .timeout(Duration::from_secs(120))
+            .build()
+            .map_err(|e| WorkerError::Client(e.to_string()))?;
+        std::fs::create_dir_all(&cache)
+            .map_err(|err| WorkerError::Cache { path: cache.display().to_string(), err })?;
+        let base = base.trim_end_matches('/').to_string();
+        Ok(HttpLink { base, token, http, cache, scenes: Mutex::new(HashMap::new()) })
+    }
+
     fn url(&self, path: &str) -> String {
-        format!("{}{}", self.cfg.coordinator.trim_end_matches('/'), path)
+        format!("{}{}", self.base, path)
     }
 
     fn auth(&self, r: RequestBuilder) -> RequestBuilder {
-        match &self.cfg.token {
+        match &self.token {
             Some(t) => r.bearer_auth(t),
             None => r,
         }
-    }
-
-    fn lease(&self) -> Result<Option<Lease>, String> {
-        let r = self
-            .auth(self.http.post(self.url("/v1/leases")))
-            .json(&LeaseRequest { worker: self.cfg.name.clone() })
-            .send()
-            .map_err(|e| e.to_string())?;
-        match r.status() {
-            StatusCode::OK => r.json().map(Some).map_err(|e| e.to_string()),
-            StatusCode::NO_CONTENT => Ok(None),
-            _ => Err(error_text(r)),
-        }
-    }
-
-    /// Renders and uploads one leased chunk. Returns whether the upload was accepted.
-    fn work(&mut self, lease: &Lease) -> bool {
-        let scene = match self.scene(&lease.bundle_hash) {
-            Ok(s) => s,
-            Err(e) => {
-                self.report_failure(lease, &e);
-                return false;
-            }
-        };
-        // Heartbeats while rendering, a third of the lease apart.
-        let (tx, rx) = mpsc::channel::<()>();
-        let hb = {
-            let http = self.http.clone();
-            let url = self.url(&format!("/v1/jobs/{}/chunks/{}/heartbeat", lease.job, lease.chunk.id));
-            let token = self.cfg.token.clone();
-            let epoch = lease.epoch;
-            let every = Duration::from_millis((lease.deadline_ms / 3).max(50));
-            std::thread::spawn(move || {
-                while let Err(mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
-                    let mut r = http.post(&url).json(&furnace_proto::Heartbeat { epoch });
-                    if let Some(t) = &token {
-                        r = r.bearer_auth(t);
-                    }
-                    match r.send() {
-                        Ok(resp) if resp.status() == StatusCode::CONFLICT => break,
-                        _ => {}
-                    }
-                }
-            })
-        };
-        let t = std::time::Instant::now();
-        let (acc, st) =
-            self.pool.install(|| render_region_parallel(&scene, &lease.chunk.region, lease.settings.seed));
-        drop(tx);
-        hb.join().ok();
-        tracing::info!(
-            job = %lease.job,
-            chunk = lease.chunk.id,
-            samples = lease.chunk.region.samples(),
-            dropped = st.dropped,
-            "rendered in {:.2} s",
-            t.elapsed().as_secs_f64()
-        );
-        let body = encode_partial(&acc);
-        self.upload(lease, body)
-    }
-
-    fn upload(&self, lease: &Lease, body: Vec<u8>) -> bool {
-        let url = self
-            .url(&format!("/v1/jobs/{}/chunks/{}/result?epoch={}", lease.job, lease.chunk.id, lease.epoch));
-        let mut backoff = Backoff::new();
-        loop {
-            match self.auth(self.http.put(&url)).body(body.clone()).send() {
-                Ok(r) if r.status().is_success() => return true,
-                Ok(r) if r.status().is_client_error() => {
-                    tracing::warn!(job = %lease.job, chunk = lease.chunk.id, "upload refused: {}", error_text(r));
-                    return false;
-                }
-                Ok(r) => tracing::warn!("upload failed ({}); retrying", r.status()),
-                Err(e) => tracing::warn!("upload failed ({e}); retrying"),
-            }
-            std::thread::sleep(backoff.next());
-        }
-    }
-
-    fn report_failure(&self, lease: &Lease, error: &str) {
-        tracing::error!(job = %lease.job, chunk = lease.chunk.id, "{error}");
-        let url = self.url(&format!("/v1/jobs/{}/chunks/{}/fail", lease.job, lease.chunk.id));
-        let body = serde_json::json!({"epoch": lease.epoch, "error": error});
-        let _ = self.auth(self.http.post(url)).json(&body).send();
     }
 
     fn get(&self, path: &str) -> Result<Vec<u8>, String> {
@@ -228,11 +275,8 @@ impl Worker {
         r.bytes().map(|b| b.to_vec()).map_err(|e| e.to_string())
     }
 
-    /// The bundle's scene, from memory, the disk cache, or the coordinator.
-    fn scene(&mut self, bundle_hash: &str) -> Result<Arc<Scene>, String> {
-        if let Some(s) = self.scenes.get(bundle_hash) {
-            return Ok(s.clone());
-        }
+    /// Fetches the bundle's files (those not cached yet) and loads its scene.
+    fn load(&self, bundle_hash: &str) -> Result<Scene, String> {
         if !furnace_proto::is_hash(bundle_hash) {
             return Err(format!("bad bundle hash '{bundle_hash}'"));
         }
@@ -243,9 +287,9 @@ impl Worker {
         if bundle.hash() != bundle_hash {
             return Err(format!("bundle manifest does not hash to {bundle_hash}"));
         }
-        let dir = self.cfg.cache.join("bundles").join(bundle_hash);
+        let dir = self.cache.join("bundles").join(bundle_hash);
         for (path, hash) in &bundle.files {
-            let file = self.cfg.cache.join("files").join(hash);
+            let file = self.cache.join("files").join(hash);
             if !file.exists() {
                 let bytes = self.get(&format!("/v1/files/{hash}"))?;
                 if blake3::hash(&bytes).to_hex().as_str() != hash {
@@ -261,10 +305,55 @@ impl Worker {
                 std::fs::copy(&file, &dst).map_err(|e| format!("cache {}: {e}", dst.display()))?;
             }
         }
-        let scene = Scene::load(&dir.join(&bundle.scene), &[]).map_err(|e| e.to_string())?;
-        let scene = Arc::new(scene);
-        self.scenes.insert(bundle_hash.to_string(), scene.clone());
+        Scene::load(&dir.join(&bundle.scene), &[]).map_err(|e| e.to_string())
+    }
+}
+
+impl Link for HttpLink {
+    fn lease(&self, worker: &str) -> Result<Option<Lease>, String> {
+        let r = self
+            .auth(self.http.post(self.url("/v1/leases")))
+            .json(&LeaseRequest { worker: worker.to_string() })
+            .send()
+            .map_err(|e| e.to_string())?;
+        match r.status() {
+            StatusCode::OK => r.json().map(Some).map_err(|e| e.to_string()),
+            StatusCode::NO_CONTENT => Ok(None),
+            _ => Err(error_text(r)),
+        }
+    }
+
+    fn heartbeat(&self, l: &Lease) -> bool {
+        let url = self.url(&format!("/v1/jobs/{}/chunks/{}/heartbeat", l.job, l.chunk.id));
+        let r = self.auth(self.http.post(url)).json(&furnace_proto::Heartbeat { epoch: l.epoch }).send();
+        !matches!(r, Ok(resp) if resp.status() == StatusCode::CONFLICT)
+    }
+
+    fn scene(&self, l: &Lease) -> Result<Arc<Scene>, String> {
+        // Held while loading, so that two slots do not load the same scene twice.
+        let mut scenes = self.scenes.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(s) = scenes.get(&l.bundle_hash) {
+            return Ok(s.clone());
+        }
+        let scene = Arc::new(self.load(&l.bundle_hash)?);
+        scenes.insert(l.bundle_hash.clone(), scene.clone());
         Ok(scene)
+    }
+
+    fn upload(&self, l: &Lease, acc: &Accum, _stats: &Stats) -> Uploaded {
+        let url = self.url(&format!("/v1/jobs/{}/chunks/{}/result?epoch={}", l.job, l.chunk.id, l.epoch));
+        match self.auth(self.http.put(&url)).body(encode_partial(acc)).send() {
+            Ok(r) if r.status().is_success() => Uploaded::Accepted,
+            Ok(r) if r.status().is_client_error() => Uploaded::Refused(error_text(r)),
+            Ok(r) => Uploaded::Retry(r.status().to_string()),
+            Err(e) => Uploaded::Retry(e.to_string()),
+        }
+    }
+
+    fn fail(&self, l: &Lease, error: &str) {
+        let url = self.url(&format!("/v1/jobs/{}/chunks/{}/fail", l.job, l.chunk.id));
+        let body = serde_json::json!({"epoch": l.epoch, "error": error});
+        let _ = self.auth(self.http.post(url)).json(&body).send();
     }
 }
 
