@@ -123,7 +123,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
     // Local workers take the scene the coordinator loaded to check the job.
     coord.keep_scenes = a.local_workers > 0;
-    let state = furnace_coordinator::AppState { coord: Arc::new(Mutex::new(coord)), token: a.token.clone() };
+    let state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone());
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(a.bind)
@@ -173,7 +173,9 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
         threads: a.threads.unwrap_or(0),
         slots: a.slots,
         name: a.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
-        poll: Duration::from_millis(500),
+        // Lease requests wait at the coordinator for work (long polling); this is the pause
+        // between two of them.
+        poll: Duration::from_millis(100),
         stop,
         exit_when_idle: a.exit_when_idle,
     };
@@ -284,10 +286,12 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
             Some(e) => format!("{:.0} samples/s, ETA {e:.0}s", st.samples_per_second),
             None => String::new(),
         });
+        // Often near the end, rarely in a long job: a twentieth of the time left, 0.1 to 2 s.
+        let pause = st.eta_seconds.map_or(0.25, |e| (e / 20.0).clamp(0.1, 2.0));
         match st.state {
             JobState::Done => break,
             JobState::Cancelled => bail!("job {id} was cancelled"),
-            _ => std::thread::sleep(Duration::from_millis(250)),
+            _ => std::thread::sleep(Duration::from_secs_f64(pause)),
         }
     }
     bar.finish_and_clear();

@@ -353,3 +353,81 @@ fn bundle_of(_url: &str, _job: &str) -> furnace_proto::Bundle {
     }
     furnace_proto::Bundle { scene: "small.xml".into(), files }
 }
+
+/// SIGTERM: the worker finishes the chunks in hand (two slots), uploads them, and exits; the
+/// job is left with those chunks merged and none leased, and another worker finishes it with
+/// `furnace render`'s bytes.
+#[test]
+fn a_worker_stopped_by_sigterm_uploads_its_chunks_and_exits() {
+    let dir = scratch("farmterm");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    // 4 chunks of 128 x 128 pixels x 32 samples, about a second each on one thread.
+    let out = Command::new(BIN)
+        .arg("submit")
+        .arg(scenes().join("cbox.xml"))
+        .args(["--coordinator", &url, "--spp", "32", "--tile", "128", "--spp-per-chunk", "32"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let job = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    let mut w = worker(&url, "w1", &dir.join("cache1"));
+    let t = Instant::now();
+    while status(&url, &job)["chunks_leased"] != 2 {
+        assert!(t.elapsed() < Duration::from_secs(30), "the worker never leased two chunks");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(200));
+    let pid = w.0.id().to_string();
+    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    let t = Instant::now();
+    let code = loop {
+        if let Some(c) = w.0.try_wait().unwrap() {
+            break c;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "the worker did not exit after SIGTERM");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(code.success(), "worker exit status {code:?}");
+    let s = status(&url, &job);
+    assert_eq!((s["chunks_done"].as_u64(), s["chunks_leased"].as_u64()), (Some(2), Some(0)), "{s}");
+    let _w2 = worker(&url, "w2", &dir.join("cache2"));
+    let farm = wait_done(&url, &job, Duration::from_secs(60));
+    assert!(farm == local_render(&dir, "cbox.xml", 32), "result differs from furnace render");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A lease request may wait at the coordinator for work: it is answered as soon as a job
+/// arrives, and with 204 when its wait runs out.
+#[test]
+fn lease_requests_wait_for_work() {
+    let dir = scratch("farmpoll");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let http = reqwest::blocking::Client::new();
+    let t = Instant::now();
+    let r = http
+        .post(format!("{url}/v1/leases"))
+        .json(&serde_json::json!({"worker": "a", "wait_ms": 300}))
+        .send();
+    assert_eq!(r.unwrap().status().as_u16(), 204);
+    assert!(t.elapsed() >= Duration::from_millis(290), "answered after {:?}", t.elapsed());
+    let waiting = {
+        let url = url.clone();
+        std::thread::spawn(move || {
+            let t = Instant::now();
+            let r = reqwest::blocking::Client::new()
+                .post(format!("{url}/v1/leases"))
+                .json(&serde_json::json!({"worker": "b", "wait_ms": 20000}))
+                .send()
+                .unwrap();
+            (r.status().as_u16(), t.elapsed())
+        })
+    };
+    std::thread::sleep(Duration::from_millis(300));
+    let submitted = Instant::now();
+    submit(&url, "small.xml", 4, 4);
+    let (code, waited) = waiting.join().unwrap();
+    assert_eq!(code, 200);
+    assert!(waited >= Duration::from_millis(300), "leased before the job existed ({waited:?})");
+    assert!(submitted.elapsed() < Duration::from_secs(5), "the waiting request was not woken");
+    std::fs::remove_dir_all(&dir).ok();
+}

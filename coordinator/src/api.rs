@@ -11,8 +11,9 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
 use axum::{Json, Router};
-use furnace_proto::{decode_partial, is_hash, ApiError, Heartbeat, JobSpec, LeaseRequest};
+use furnace_proto::{decode_partial, is_hash, ApiError, Heartbeat, JobSpec, LeaseRequest, MAX_LEASE_WAIT_MS};
 use serde::Deserialize;
+use tokio::sync::Notify;
 
 use crate::state::{CoordError, Coordinator};
 
@@ -22,9 +23,20 @@ pub struct AppState {
     pub coord: Arc<Mutex<Coordinator>>,
     /// Bearer token required on every request, when set.
     pub token: Option<String>,
+    /// Wakes lease requests held open for work: signalled when work may have appeared.
+    work: Arc<Notify>,
 }
 
 impl AppState {
+    pub fn new(coord: Arc<Mutex<Coordinator>>, token: Option<String>) -> AppState {
+        AppState { coord, token, work: Arc::new(Notify::new()) }
+    }
+
+    /// Tells waiting lease requests to look again.
+    fn new_work(&self) {
+        self.work.notify_waiters();
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, Coordinator> {
         self.coord.lock().unwrap_or_else(|e| e.into_inner())
     }
@@ -144,6 +156,7 @@ async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) ->
     })
     .await
     .map_err(|e| CoordError::Internal(e.to_string()))??;
+    s.new_work();
     let status = if created { StatusCode::CREATED } else { StatusCode::OK };
     Ok((status, Json(serde_json::json!({"id": id}))).into_response())
 }
@@ -193,6 +206,7 @@ async fn result(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult 
 
 async fn control(State(s): State<AppState>, Path((id, action)): Path<(String, String)>) -> ApiResult {
     s.lock().control(&id, &action)?;
+    s.new_work();
     Ok(Json(s.lock().status(&id)?).into_response())
 }
 
@@ -204,6 +218,7 @@ struct Priority {
 async fn priority(State(s): State<AppState>, Path(id): Path<String>, body: Bytes) -> ApiResult {
     let p: Priority = json_body(&body, "priority")?;
     s.lock().set_priority(&id, p.priority)?;
+    s.new_work();
     Ok(Json(s.lock().status(&id)?).into_response())
 }
 
@@ -212,9 +227,19 @@ async fn lease(State(s): State<AppState>, body: Bytes) -> ApiResult {
     if req.worker.is_empty() || req.worker.len() > 200 {
         return Err(CoordError::BadRequest("worker name must be 1 to 200 bytes".into()));
     }
-    match s.lock().lease(&req.worker, Instant::now()) {
-        Some(l) => Ok(Json(l).into_response()),
-        None => Ok(StatusCode::NO_CONTENT.into_response()),
+    let until = tokio::time::Instant::now() + Duration::from_millis(req.wait_ms.min(MAX_LEASE_WAIT_MS));
+    loop {
+        // Registered before looking, so that work arriving in between is not missed.
+        let woken = s.work.notified();
+        tokio::pin!(woken);
+        woken.as_mut().enable();
+        if let Some(l) = s.lock().lease(&req.worker, Instant::now()) {
+            return Ok(Json(l).into_response());
+        }
+        tokio::select! {
+            _ = woken => {}
+            _ = tokio::time::sleep_until(until) => return Ok(StatusCode::NO_CONTENT.into_response()),
+        }
     }
 }
 
@@ -237,6 +262,7 @@ struct Failure {
 async fn fail(State(s): State<AppState>, Path((id, chunk)): Path<(String, u32)>, body: Bytes) -> ApiResult {
     let f: Failure = json_body(&body, "failure report")?;
     s.lock().fail(&id, chunk, f.epoch, &f.error)?;
+    s.new_work();
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
@@ -271,12 +297,14 @@ pub async fn run(
     state: AppState,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
-    let coord = state.coord.clone();
+    let s = state.clone();
     tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(500));
         loop {
             tick.tick().await;
-            coord.lock().unwrap_or_else(|e| e.into_inner()).expire_leases(Instant::now());
+            if s.lock().expire_leases(Instant::now()) > 0 {
+                s.new_work();
+            }
         }
     });
     axum::serve(listener, router(state)).with_graceful_shutdown(shutdown).await

@@ -441,8 +441,9 @@ impl Coordinator {
         Ok(())
     }
 
-    /// Returns expired leases to the front of their job's queue.
-    pub fn expire_leases(&mut self, now: Instant) {
+    /// Returns expired leases to the front of their job's queue; returns how many.
+    pub fn expire_leases(&mut self, now: Instant) -> usize {
+        let mut n = 0;
         for job in self.jobs.values_mut() {
             for (i, c) in job.chunks.iter_mut().enumerate() {
                 if let ChunkState::Leased { deadline, worker, .. } = c {
@@ -450,10 +451,12 @@ impl Coordinator {
                         tracing::info!(job = %job.id, chunk = i, worker = %worker, "lease expired; chunk requeued");
                         *c = ChunkState::Pending;
                         job.queue.push_front(i as u32);
+                        n += 1;
                     }
                 }
             }
         }
+        n
     }
 
     /// Hands out the next chunk: highest priority first, then oldest job; pass by pass.

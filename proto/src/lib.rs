@@ -124,7 +124,14 @@ pub struct JobSpec {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct LeaseRequest {
     pub worker: String,
+    /// How long the coordinator may hold the request open waiting for work (long polling),
+    /// in milliseconds; it answers 204 if none comes. At most `MAX_LEASE_WAIT_MS`.
+    #[serde(default)]
+    pub wait_ms: u64,
 }
+
+/// Longest a lease request is held open.
+pub const MAX_LEASE_WAIT_MS: u64 = 30_000;
 
 /// A chunk leased to a worker until `deadline_ms` (milliseconds from now when granted) unless
 /// it heartbeats. Uploads and heartbeats carry the epoch; a requeued chunk gets a higher one.

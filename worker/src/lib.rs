@@ -241,6 +241,8 @@ pub struct HttpLink {
     http: Client,
     cache: PathBuf,
     scenes: Mutex<HashMap<String, Arc<Scene>>>,
+    /// How long a lease request may wait at the coordinator for work.
+    pub wait: Duration,
 }
 
 impl HttpLink {
@@ -253,7 +255,8 @@ impl HttpLink {
         std::fs::create_dir_all(&cache)
             .map_err(|err| WorkerError::Cache { path: cache.display().to_string(), err })?;
         let base = base.trim_end_matches('/').to_string();
-        Ok(HttpLink { base, token, http, cache, scenes: Mutex::new(HashMap::new()) })
+        let scenes = Mutex::new(HashMap::new());
+        Ok(HttpLink { base, token, http, cache, scenes, wait: Duration::from_secs(2) })
     }
 
     fn url(&self, path: &str) -> String {
@@ -313,7 +316,7 @@ impl Link for HttpLink {
     fn lease(&self, worker: &str) -> Result<Option<Lease>, String> {
         let r = self
             .auth(self.http.post(self.url("/v1/leases")))
-            .json(&LeaseRequest { worker: worker.to_string() })
+            .json(&LeaseRequest { worker: worker.to_string(), wait_ms: self.wait.as_millis() as u64 })
             .send()
             .map_err(|e| e.to_string())?;
         match r.status() {
