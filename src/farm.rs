@@ -1,7 +1,7 @@
 //! The farm's commands: `serve`, `worker`, `submit`, `status`.
 
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -216,40 +216,17 @@ impl Api {
     }
 }
 
-/// The bundle of a scene: the scene file and every asset it reads, relative to its folder.
-fn bundle_files(scene_path: &Path) -> Result<(Bundle, Vec<(String, Vec<u8>)>, Scene)> {
-    let scene = Scene::load(scene_path, &[])?;
-    let dir = scene_path.parent().unwrap_or(Path::new(".")).canonicalize()?;
-    let mut paths = vec![scene_path.canonicalize()?];
-    paths.extend(scene.assets.iter().filter_map(|p| p.canonicalize().ok()));
-    let mut files = Vec::new();
-    let mut bundle = Bundle { scene: String::new(), files: Default::default() };
-    for (i, p) in paths.iter().enumerate() {
-        let rel = p
-            .strip_prefix(&dir)
-            .with_context(|| format!("{} is outside the scene's folder", p.display()))?
-            .to_string_lossy()
-            .replace('\\', "/");
-        let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
-        let hash = blake3::hash(&bytes).to_hex().to_string();
-        if i == 0 {
-            bundle.scene = rel.clone();
-        }
-        bundle.files.insert(rel.clone(), hash);
-        files.push((rel, bytes));
-    }
-    Ok((bundle, files, scene))
-}
-
 pub fn submit(a: SubmitArgs) -> Result<()> {
     let api = Api::new(&a.coordinator, a.token.clone())?;
-    let (bundle, files, scene) = bundle_files(&a.scene)?;
-    for (rel, bytes) in files {
-        let hash = &bundle.files[&rel];
+    let scene = Scene::load(&a.scene, &[])?;
+    let (bundle, files) = Bundle::of_scene(&a.scene, &scene).map_err(anyhow::Error::msg)?;
+    for (rel, path) in &files {
+        let hash = &bundle.files[rel];
         let head = api.req(reqwest::Method::HEAD, &format!("/v1/files/{hash}")).send()?;
         if head.status().is_success() {
             continue;
         }
+        let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
         Api::check(api.req(reqwest::Method::PUT, &format!("/v1/files/{hash}")).body(bytes).send()?)
             .with_context(|| format!("uploading {rel}"))?;
     }

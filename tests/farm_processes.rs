@@ -340,18 +340,7 @@ fn idempotency_pause_resume_failures_preview_events_and_cancel() {
 /// The bundle of a submitted job, rebuilt from the scene folder as `furnace submit` does.
 fn bundle_of(_url: &str, _job: &str) -> furnace_proto::Bundle {
     let scene = common::load("small.xml", &[]);
-    let dir = scenes().canonicalize().unwrap();
-    let mut files = std::collections::BTreeMap::new();
-    let mut add = |p: &Path| {
-        let p = p.canonicalize().unwrap();
-        let rel = p.strip_prefix(&dir).unwrap().to_string_lossy().to_string();
-        files.insert(rel, blake3::hash(&std::fs::read(&p).unwrap()).to_hex().to_string());
-    };
-    add(&scenes().join("small.xml"));
-    for a in &scene.assets {
-        add(a);
-    }
-    furnace_proto::Bundle { scene: "small.xml".into(), files }
+    furnace_proto::Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap().0
 }
 
 /// SIGTERM: the worker finishes the chunks in hand (two slots), uploads them, and exits; the

@@ -75,6 +75,37 @@ pub struct Bundle {
 }
 
 impl Bundle {
+    /// The bundle of a loaded scene: its file and every asset it reads, by path relative to the
+    /// scene's folder. Returns the bundle and, for each of its paths, the file on this machine.
+    pub fn of_scene(
+        scene_path: &std::path::Path,
+        scene: &furnace_core::Scene,
+    ) -> Result<(Bundle, Vec<(String, std::path::PathBuf)>), String> {
+        let canon = |p: &std::path::Path| p.canonicalize().map_err(|e| format!("{}: {e}", p.display()));
+        let scene_file = canon(scene_path)?;
+        let dir = scene_file.parent().ok_or("the scene file has no folder")?.to_path_buf();
+        let mut paths = vec![scene_file];
+        for a in &scene.assets {
+            paths.push(canon(a)?);
+        }
+        let mut bundle = Bundle { scene: String::new(), files: BTreeMap::new() };
+        let mut local = Vec::new();
+        for (i, p) in paths.into_iter().enumerate() {
+            let rel = p
+                .strip_prefix(&dir)
+                .map_err(|_| format!("{} is outside the scene's folder {}", p.display(), dir.display()))?
+                .to_string_lossy()
+                .replace('\\', "/");
+            let bytes = std::fs::read(&p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
+            if i == 0 {
+                bundle.scene = rel.clone();
+            }
+            bundle.files.insert(rel.clone(), blake3::hash(&bytes).to_hex().to_string());
+            local.push((rel, p));
+        }
+        Ok((bundle, local))
+    }
+
     /// The bundle's own hash: BLAKE3 of its canonical JSON (files sorted by path).
     pub fn hash(&self) -> String {
         let json = serde_json::to_vec(self).expect("a bundle serialises");

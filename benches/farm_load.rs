@@ -1,0 +1,224 @@
+//! The coordinator under load, on loopback: how many lease-and-upload round trips per second it
+//! serves to many small simulated workers, and how many MB/s of partials it stores and merges.
+//!
+//!   cargo bench --bench farm_load [-- --workers 1,4,16,64] [--data DIR]
+//!
+//! The simulated workers render nothing while timed: every chunk's partial is rendered and
+//! encoded beforehand, so the numbers are the coordinator's (HTTP, decode, checks, fsync of
+//! the partial, merge, checkpoints) plus the clients' loopback HTTP on the same cores. The
+//! coordinator stores its data in a fresh folder under --data (default: the temp folder).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use furnace_coordinator::{AppState, Coordinator};
+use furnace_core::Scene;
+use furnace_proto::{chunk_plan, encode_partial, Bundle, JobSettings, JobSpec, JobState, Lease};
+
+struct Server {
+    url: String,
+    coord: Arc<Mutex<Coordinator>>,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            s.send(()).ok();
+        }
+        if let Some(t) = self.thread.take() {
+            t.join().ok();
+        }
+    }
+}
+
+fn serve(data: &Path) -> Server {
+    let coord = Arc::new(Mutex::new(Coordinator::open(data).expect("open coordinator")));
+    let state = AppState::new(coord.clone(), None);
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let (addr_tx, addr_rx) = std::sync::mpsc::channel();
+    let thread = std::thread::spawn(move || {
+        let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("runtime");
+        rt.block_on(async move {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
+            addr_tx.send(listener.local_addr().expect("address")).ok();
+            furnace_coordinator::run(listener, state, async {
+                rx.await.ok();
+            })
+            .await
+            .expect("serve");
+        });
+    });
+    let addr = addr_rx.recv().expect("coordinator address");
+    Server { url: format!("http://{addr}"), coord, stop: Some(tx), thread: Some(thread) }
+}
+
+/// Stores the scene's files in the coordinator's data folder and submits the job directly.
+fn submit(server: &Server, scene_path: &Path, scene: &Scene, settings: &JobSettings) -> String {
+    let mut c = server.coord.lock().expect("lock");
+    let (bundle, files) = Bundle::of_scene(scene_path, scene).expect("bundle");
+    for (rel, path) in files {
+        std::fs::copy(path, c.file_path(&bundle.files[&rel])).expect("store file");
+    }
+    c.submit(JobSpec { bundle, settings: settings.clone() }, None).expect("submit").0
+}
+
+/// Runs `workers` threads of lease + upload until the job has no chunks left. Returns
+/// (round trips, bytes uploaded, seconds).
+fn drive(url: &str, workers: usize, partials: &Arc<Vec<Vec<u8>>>) -> (u64, u64, f64) {
+    let trips = Arc::new(AtomicU64::new(0));
+    let bytes = Arc::new(AtomicU64::new(0));
+    let t = Instant::now();
+    let handles: Vec<_> = (0..workers)
+        .map(|i| {
+            let (url, partials, trips, bytes) =
+                (url.to_string(), partials.clone(), trips.clone(), bytes.clone());
+            std::thread::spawn(move || {
+                let http = reqwest::blocking::Client::builder()
+                    .timeout(Duration::from_secs(60))
+                    .build()
+                    .expect("client");
+                let name = format!("sim-{i}");
+                loop {
+                    let r = http
+                        .post(format!("{url}/v1/leases"))
+                        .json(&serde_json::json!({"worker": name}))
+                        .send()
+                        .expect("lease");
+                    if r.status() == 204 {
+                        break;
+                    }
+                    let l: Lease = r.json().expect("lease JSON");
+                    let body = partials[l.chunk.id as usize].clone();
+                    let n = body.len() as u64;
+                    let r = http
+                        .put(format!(
+                            "{url}/v1/jobs/{}/chunks/{}/result?epoch={}",
+                            l.job, l.chunk.id, l.epoch
+                        ))
+                        .body(body)
+                        .send()
+                        .expect("upload");
+                    assert_eq!(r.status(), 204, "upload refused: {:?}", r.text());
+                    trips.fetch_add(1, Ordering::Relaxed);
+                    bytes.fetch_add(n, Ordering::Relaxed);
+                }
+            })
+        })
+        .collect();
+    for h in handles {
+        h.join().expect("simulated worker");
+    }
+    (trips.load(Ordering::Relaxed), bytes.load(Ordering::Relaxed), t.elapsed().as_secs_f64())
+}
+
+fn prerender(scene: &Scene, settings: &JobSettings) -> (Arc<Vec<Vec<u8>>>, u64) {
+    let plan = chunk_plan(settings);
+    let mut raw = 0;
+    let parts = plan
+        .iter()
+        .map(|c| {
+            let acc = furnace_worker::render_chunk(scene, c, settings.seed).0;
+            raw += acc.width as u64 * acc.height as u64 * 22 * 4;
+            encode_partial(&acc)
+        })
+        .collect();
+    (Arc::new(parts), raw)
+}
+
+fn run_case(
+    label: &str,
+    base: &Path,
+    scene_path: &Path,
+    scene: &Scene,
+    settings: &JobSettings,
+    workers: usize,
+) -> (f64, f64, f64) {
+    let (partials, raw) = prerender(scene, settings);
+    let data = base.join(format!("{label}-{workers}"));
+    std::fs::remove_dir_all(&data).ok();
+    let server = serve(&data);
+    let job = submit(&server, scene_path, scene, settings);
+    let (trips, bytes, secs) = drive(&server.url, workers, &partials);
+    let state = server.coord.lock().expect("lock").status(&job).expect("status").state;
+    assert_eq!(state, JobState::Done, "{label}: job not done after every chunk was uploaded");
+    drop(server);
+    std::fs::remove_dir_all(&data).ok();
+    (trips as f64 / secs, bytes as f64 / secs / 1e6, raw as f64 / secs / 1e6)
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let mut workers = vec![1usize, 4, 16, 64];
+    let mut base = std::env::temp_dir();
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--workers" => {
+                workers = args
+                    .next()
+                    .expect("--workers N,N,...")
+                    .split(',')
+                    .map(|n| n.parse().expect("--workers takes numbers"))
+                    .collect()
+            }
+            "--data" => base = PathBuf::from(args.next().expect("--data DIR")),
+            _ => {} // cargo bench passes --bench
+        }
+    }
+    let base = base.join(format!("furnace-farm-load-{}", std::process::id()));
+    let scene_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/scenes/cbox.xml");
+    let scene = Scene::load(&scene_path, &[]).expect("load cbox");
+    let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+    let settings = |tile, spp| JobSettings {
+        width: w,
+        height: h,
+        spp,
+        tile_size: tile,
+        spp_per_chunk: 1,
+        seed: 0,
+        priority: 0,
+    };
+    // Small chunks: 8 x 8 pixels x 1 sample, 4096 of them. Round trips per second.
+    println!("round trips: cbox {w}x{h}, 8x8-pixel chunks of 1 sample, 4096 chunks");
+    println!("{:>8} {:>14} {:>12}", "workers", "round trips/s", "MB/s wire");
+    for &n in &workers {
+        let (rt, mb, _) = run_case("small", &base, &scene_path, &scene, &settings(8, 4), n);
+        println!("{n:>8} {rt:>14.0} {mb:>12.2}");
+    }
+    // Large chunks: the whole 256 x 256 image x 1 sample, 64 of them. Merge throughput.
+    println!("merge throughput: whole-image chunks of 1 sample, 64 chunks");
+    println!("{:>8} {:>14} {:>12} {:>14}", "workers", "chunks/s", "MB/s wire", "MB/s decoded");
+    for &n in workers.iter().filter(|&&n| n <= 16) {
+        let (rt, mb, raw) = run_case("large", &base, &scene_path, &scene, &settings(256, 64), n);
+        println!("{n:>8} {rt:>14.1} {mb:>12.2} {raw:>14.1}");
+    }
+    // A full-HD job: 510 tiles of 64 x 64 pixels x 4 passes of 1 sample; each checkpoint
+    // (every 256 merges and at the end) encodes the whole 1920 x 1080 accumulation, and the
+    // job ends with result.exr written.
+    std::fs::create_dir_all(&base).expect("scratch folder");
+    let hd_path = base.join("cbox-1080.xml");
+    let xml = std::fs::read_to_string(&scene_path).expect("read cbox");
+    let xml = xml
+        .replace(r#"name="width" value="256""#, r#"name="width" value="1920""#)
+        .replace(r#"name="height" value="256""#, r#"name="height" value="1080""#);
+    std::fs::write(&hd_path, xml).expect("write 1080p cbox");
+    let hd = Scene::load(&hd_path, &[]).expect("load 1080p cbox");
+    let hd_settings = JobSettings { width: 1920, height: 1080, ..settings(64, 4) };
+    println!("full HD: 1920x1080, 64x64-pixel chunks of 1 sample, 2040 chunks, 8 checkpoints");
+    println!("{:>8} {:>14} {:>12} {:>14}", "workers", "chunks/s", "MB/s wire", "MB/s decoded");
+    for &n in workers.iter().filter(|&&n| n <= 16) {
+        let (rt, mb, raw) = run_case("hd", &base, &hd_path, &hd, &hd_settings, n);
+        println!("{n:>8} {rt:>14.1} {mb:>12.2} {raw:>14.1}");
+    }
+    std::fs::remove_dir_all(&base).ok();
+}
