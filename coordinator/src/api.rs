@@ -190,11 +190,7 @@ async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
 
 async fn preview(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
     let img = s.lock().image(&id)?;
-    let dir = std::env::temp_dir().join(format!("furnace-preview-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
-    let path = dir.join(format!("{id}.png"));
-    img.write_png(&path, 0.0).map_err(|e| CoordError::Internal(e.to_string()))?;
-    let bytes = std::fs::read(&path)?;
+    let bytes = img.png_bytes(0.0).map_err(|e| CoordError::Internal(format!("preview: {e}")))?;
     Ok(([(header::CONTENT_TYPE, "image/png")], bytes).into_response())
 }
 

@@ -790,9 +790,9 @@ impl Snapshot {
             std::fs::remove_file(self.dir.join("partials").join(format!("{id}.zst"))).ok();
         }
         if self.finished {
-            let tmp = self.dir.join(".result.exr.tmp");
-            self.accum.develop().write_exr(&tmp).map_err(|e| CoordError::Internal(e.to_string()))?;
-            std::fs::rename(&tmp, self.dir.join("result.exr"))?;
+            // Written atomically (temporary file, rename) before the job is marked done.
+            let result = self.dir.join("result.exr");
+            self.accum.develop().write_exr(&result).map_err(|e| CoordError::Internal(e.to_string()))?;
         }
         tracing::info!(job = %self.job, bytes = bytes.len(), "checkpoint written in {:.3} s", t.elapsed().as_secs_f64());
         Ok(())

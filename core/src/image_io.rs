@@ -48,6 +48,18 @@ impl Image {
 
     /// Writes an 8-bit sRGB PNG: radiance x 2^exposure, clamped to [0, 1], sRGB-encoded.
     pub fn write_png(&self, path: &Path, exposure: f32) -> Result<(), ImageIoError> {
+        let bytes = self
+            .png_bytes(exposure)
+            .map_err(|err| ImageIoError::Png { path: path.display().to_string(), err })?;
+        write_atomically(path, |tmp| {
+            std::fs::write(tmp, &bytes)
+                .map_err(|err| ImageIoError::Io { path: path.display().to_string(), err })
+        })
+    }
+
+    /// The image as PNG file bytes, tonemapped as [`Image::write_png`] does.
+    pub fn png_bytes(&self, exposure: f32) -> Result<Vec<u8>, image::ImageError> {
+        use image::ImageEncoder;
         let scale = exposure.exp2();
         let mut buf = Vec::with_capacity(self.data.len() * 3);
         for c in &self.data {
@@ -56,17 +68,14 @@ impl Image {
                 buf.push((linear_to_srgb(v) * 255.0 + 0.5) as u8);
             }
         }
-        write_atomically(path, |tmp| {
-            image::save_buffer_with_format(
-                tmp,
-                &buf,
-                self.width,
-                self.height,
-                image::ExtendedColorType::Rgb8,
-                image::ImageFormat::Png,
-            )
-            .map_err(|err| ImageIoError::Png { path: path.display().to_string(), err })
-        })
+        let mut out = Vec::new();
+        image::codecs::png::PngEncoder::new(&mut out).write_image(
+            &buf,
+            self.width,
+            self.height,
+            image::ExtendedColorType::Rgb8,
+        )?;
+        Ok(out)
     }
 
     /// Reads the first RGB(A) layer of an EXR.
