@@ -128,6 +128,19 @@ fn two_workers_render_the_same_bytes_as_furnace_render() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `serve --local-workers`: workers inside the coordinator's process (the in-process link,
+/// with the scene the coordinator loaded) give the same bytes.
+#[test]
+fn local_workers_in_the_coordinator_render_the_same_bytes() {
+    let dir = scratch("farmlocal");
+    let (_c, url) = coordinator(&dir.join("data"), &["--local-workers", "1", "--worker-threads", "1"], 0);
+    let job = submit(&url, "small.xml", 24, 8);
+    let farm = wait_done(&url, &job, Duration::from_secs(120));
+    assert!(farm == local_render(&dir, "small.xml", 24), "local workers' result differs from furnace render");
+    assert_eq!(status(&url, &job)["workers"], serde_json::json!(["local-0"]));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn a_worker_killed_mid_chunk_and_a_coordinator_killed_mid_job_change_nothing() {
     let dir = scratch("farmkill");
