@@ -23,6 +23,11 @@ use furnace_proto::{
 
 /// Merges between checkpoints (at least; see `Coordinator::checkpoint_interval`).
 const CHECKPOINT_EVERY: usize = 256;
+/// The database: jobs (spec, state, idempotency key) and the boot counter.
+const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS jobs (
+        id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
+        idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);
+    CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);";
 /// Failures of one worker on one job after which it gets no more of that job's chunks.
 pub const MAX_FAILURES_PER_WORKER: u32 = 3;
 
@@ -186,12 +191,7 @@ impl Coordinator {
         let db = rusqlite::Connection::open(data.join("furnace.db"))?;
         db.pragma_update(None, "journal_mode", "WAL")?;
         db.pragma_update(None, "synchronous", "FULL")?;
-        db.execute_batch(
-            "CREATE TABLE IF NOT EXISTS jobs (
-                id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
-                idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);
-             CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);",
-        )?;
+        db.execute_batch(SCHEMA)?;
         // Epochs after a restart start above every epoch handed out before.
         let boot: i64 =
             db.query_row("SELECT value FROM meta WHERE key = 'boot'", [], |r| r.get(0)).unwrap_or(0) + 1;
@@ -236,11 +236,7 @@ impl Coordinator {
     /// Jobs are submitted with [`Coordinator::submit_scene`]; everything lives in memory.
     pub fn ephemeral() -> Result<Coordinator, CoordError> {
         let db = rusqlite::Connection::open_in_memory()?;
-        db.execute_batch(
-            "CREATE TABLE jobs (
-                id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
-                idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);",
-        )?;
+        db.execute_batch(SCHEMA)?;
         Ok(Coordinator {
             data: PathBuf::new(),
             persist: false,
