@@ -8,11 +8,13 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use furnace_coordinator::Coordinator;
-use furnace_core::{Image, Scene};
+use furnace_core::{Image, Scene, Stats};
 use furnace_proto::{JobSettings, JobState};
 use furnace_worker::{LocalLink, WorkerConfig};
 
 mod farm;
+mod plot;
+mod report;
 
 #[derive(Parser)]
 #[command(name = "furnace", version, about = "Furnace: a physically based renderer and its render farm")]
@@ -35,6 +37,8 @@ enum Cmd {
     Submit(farm::SubmitArgs),
     /// Show jobs on a coordinator.
     Status(farm::StatusArgs),
+    /// Error against a reference versus render time, per sample count and technique.
+    Report(report::ReportArgs),
 }
 
 #[derive(Args)]
@@ -89,6 +93,10 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Worker(a) => farm::worker(a),
         Cmd::Submit(a) => farm::submit(a),
         Cmd::Status(a) => farm::status(a),
+        Cmd::Report(a) => {
+            let defines = parse_defines(&a.define)?;
+            report::report(a, &defines)
+        }
         Cmd::Compare { image, reference } => {
             let a = Image::read_exr(&image)?;
             let b = Image::read_exr(&reference)?;
@@ -149,46 +157,13 @@ fn render(a: RenderArgs) -> Result<()> {
         )
         .expect("static progress template"),
     );
-    // The farm in one process: a coordinator that stores nothing and one worker on all threads.
     let t1 = Instant::now();
-    let settings = JobSettings {
-        width: w,
-        height: h,
-        spp,
-        tile_size: a.tile.max(1),
-        spp_per_chunk: 64,
-        seed,
-        priority: 0,
-    };
-    let coord = Arc::new(Mutex::new(Coordinator::ephemeral()?));
-    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
-    let job = lock().submit_scene(Arc::new(scene), settings)?;
-    let link = Arc::new(LocalLink::new(coord.clone()));
     let threads = a.threads.unwrap_or(0);
-    let cfg = WorkerConfig {
-        link: link.clone(),
-        threads,
-        slots: 2,
-        name: "local".into(),
-        poll: Duration::from_millis(10),
-        stop: Arc::new(AtomicBool::new(false)),
-        exit_when_idle: true,
-    };
-    let worker = std::thread::spawn(move || furnace_worker::run(cfg));
-    while !worker.is_finished() {
-        bar.set_position(lock().status(&job)?.samples_done);
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    worker.join().map_err(|_| anyhow::anyhow!("the render worker panicked"))??;
+    let (image, stats) =
+        render_local(Arc::new(scene), spp, seed, a.tile, threads, &|done| bar.set_position(done))?;
     bar.finish_and_clear();
-    let status = lock().status(&job)?;
-    if status.state != JobState::Done {
-        bail!("the render stopped unfinished: {}", status.errors.join("; "));
-    }
     let secs = t1.elapsed().as_secs_f64();
-    let stats = link.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
     let threads = if threads == 0 { rayon::current_num_threads() } else { threads };
-    let image = lock().image(&job)?;
     image.write_exr(&out)?;
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;
@@ -207,6 +182,58 @@ fn render(a: RenderArgs) -> Result<()> {
     }
     println!("wrote {} and {}", out.display(), png.display());
     Ok(())
+}
+
+/// Renders on this machine through the farm in one process: a coordinator that stores nothing
+/// and one worker on `threads` threads (0: all cores). The bytes are the farm's.
+pub fn render_local(
+    scene: Arc<Scene>,
+    spp: u64,
+    seed: u64,
+    tile: u32,
+    threads: usize,
+    progress: &dyn Fn(u64),
+) -> Result<(Image, Stats)> {
+    let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+    let settings = JobSettings {
+        width: w,
+        height: h,
+        spp,
+        tile_size: tile.max(1),
+        spp_per_chunk: 64,
+        seed,
+        priority: 0,
+    };
+    let coord = Arc::new(Mutex::new(Coordinator::ephemeral()?));
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let job = lock().submit_scene(scene, settings)?;
+    let link = Arc::new(LocalLink::new(coord.clone()));
+    let cfg = WorkerConfig {
+        link: link.clone(),
+        threads,
+        slots: 2,
+        name: "local".into(),
+        poll: Duration::from_millis(10),
+        stop: Arc::new(AtomicBool::new(false)),
+        exit_when_idle: true,
+    };
+    let (done_tx, done) = std::sync::mpsc::channel();
+    let worker = std::thread::spawn(move || {
+        let r = furnace_worker::run(cfg);
+        done_tx.send(()).ok();
+        r
+    });
+    while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = done.recv_timeout(Duration::from_millis(50)) {
+        progress(lock().status(&job)?.samples_done);
+    }
+    worker.join().map_err(|_| anyhow::anyhow!("the render worker panicked"))??;
+    let status = lock().status(&job)?;
+    if status.state != JobState::Done {
+        bail!("the render stopped unfinished: {}", status.errors.join("; "));
+    }
+    let stats = link.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let image = lock().image(&job)?;
+    Ok((image, stats))
 }
 
 fn default_output(scene: &Path) -> PathBuf {

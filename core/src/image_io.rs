@@ -108,27 +108,38 @@ impl Image {
     }
 
     /// Error against `reference` (same size): relMSE = mean((a - b)^2 / (b^2 + 1e-2)) and
-    /// RMSE over all channels of pixels finite in both.
+    /// RMSE over all channels of pixels finite in both; per-pixel relative error (the root of
+    /// that pixel's relMSE over its channels) at the 50th, 90th and 99th percentiles.
     pub fn compare(&self, reference: &Image) -> Option<Comparison> {
         if self.width != reference.width || self.height != reference.height {
             return None;
         }
         let (mut se, mut rel, mut n) = (0.0f64, 0.0f64, 0usize);
+        let mut per_pixel = Vec::with_capacity(self.data.len());
         for (a, b) in self.data.iter().zip(&reference.data) {
             if !a.is_finite() || !b.is_finite() {
                 continue;
             }
+            let mut pixel = 0.0;
             for c in 0..3 {
                 let d = (a[c] - b[c]) as f64;
                 se += d * d;
-                rel += d * d / ((b[c] as f64).powi(2) + 1e-2);
+                pixel += d * d / ((b[c] as f64).powi(2) + 1e-2);
                 n += 1;
             }
+            rel += pixel;
+            per_pixel.push((pixel / 3.0).sqrt());
         }
+        per_pixel.sort_by(f64::total_cmp);
+        let pct = |p: f64| match per_pixel.len() {
+            0 => 0.0,
+            len => per_pixel[((len - 1) as f64 * p).round() as usize],
+        };
         let n = n.max(1) as f64;
         Some(Comparison {
             rmse: (se / n).sqrt(),
             rel_mse: rel / n,
+            rel_err_percentiles: [pct(0.5), pct(0.9), pct(0.99)],
             mean_lum: self.mean_luminance(),
             ref_mean_lum: reference.mean_luminance(),
         })
@@ -139,6 +150,8 @@ impl Image {
 pub struct Comparison {
     pub rmse: f64,
     pub rel_mse: f64,
+    /// Per-pixel relative error at the 50th, 90th and 99th percentiles.
+    pub rel_err_percentiles: [f64; 3],
     pub mean_lum: f64,
     pub ref_mean_lum: f64,
 }

@@ -1,0 +1,212 @@
+//! `furnace report`: what accuracy costs in time. Renders a scene at 1, 2, 4, ... samples per
+//! pixel, times each render, measures its error against a reference, and writes a table, a CSV
+//! and a log-log plot of error against time with the ideal 1/N slope; the same for ablations of
+//! the techniques the scene's render plan uses.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use furnace_core::{Image, Scene};
+
+#[derive(Args)]
+pub struct ReportArgs {
+    /// Scene file (Mitsuba 3 XML).
+    pub scene: PathBuf,
+    /// Reference image (EXR) to measure error against; default: our own render at --ref-spp.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// Output folder for report.csv, report.svg and report.png.
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    /// Largest sample count of each series (a power of two is reached first).
+    #[arg(long, default_value_t = 256)]
+    pub max_spp: u64,
+    /// Time budget of each series in seconds: it stops at the first render past the budget.
+    #[arg(long, default_value_t = 120.0)]
+    pub budget: f64,
+    /// Samples per pixel of our own reference, when none is given (default: 16 x --max-spp).
+    #[arg(long)]
+    pub ref_spp: Option<u64>,
+    /// Render threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Set a scene parameter, as Mitsuba's -D.
+    #[arg(short = 'D', value_name = "NAME=VALUE")]
+    pub define: Vec<String>,
+}
+
+/// One render of a series.
+#[derive(Clone, Debug)]
+pub struct Row {
+    pub technique: String,
+    pub spp: u64,
+    pub seconds: f64,
+    pub rel_mse: f64,
+    pub rmse: f64,
+    pub p50: f64,
+    pub p90: f64,
+    pub p99: f64,
+}
+
+/// A variant of the scene to measure: a name and a change to the loaded scene.
+struct Technique {
+    name: String,
+    apply: Box<dyn Fn(&mut Scene)>,
+}
+
+/// The techniques to compare for this scene: the scene as it is, then an ablation for each
+/// effect its render plan uses that has one.
+fn techniques(scene: &Scene) -> Vec<Technique> {
+    let mut t = vec![Technique { name: "path tracer (as the scene says)".into(), apply: Box::new(|_| {}) }];
+    let depth = scene.integrator.max_depth;
+    // max_depth counts path vertices (Mitsuba: -1 unbounded); 2 is direct light only.
+    for d in [2u32, 3] {
+        if depth == u32::MAX || depth > d {
+            t.push(Technique {
+                name: format!("max_depth {d}"),
+                apply: Box::new(move |s: &mut Scene| {
+                    s.integrator.max_depth = d;
+                    s.plan.max_depth = d;
+                }),
+            });
+        }
+    }
+    t
+}
+
+pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
+    if a.max_spp == 0 {
+        bail!("--max-spp must be at least 1");
+    }
+    let base = Scene::load(&a.scene, defines)?;
+    let seed = base.seed;
+    let threads = a.threads.unwrap_or(0);
+    let dir = a.output.clone().unwrap_or_else(|| {
+        let stem = a.scene.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+        PathBuf::from(format!("report-{stem}"))
+    });
+    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let techs = techniques(&base);
+    drop(base);
+    let reference = match &a.reference {
+        Some(p) => {
+            println!("reference: {}", p.display());
+            Image::read_exr(p)?
+        }
+        None => {
+            let spp = a.ref_spp.unwrap_or(16 * a.max_spp);
+            println!("reference: our own render at {spp} spp, seed {} (no --reference given)", seed + 1);
+            let scene = Arc::new(Scene::load(&a.scene, defines)?);
+            let t = Instant::now();
+            let img = crate::render_local(scene, spp, seed + 1, 32, threads, &|_| {})?.0;
+            println!("  rendered in {:.1} s", t.elapsed().as_secs_f64());
+            img.write_exr(&dir.join("reference.exr"))?;
+            img
+        }
+    };
+    println!(
+        "{:<34} {:>6} {:>9} {:>10} {:>10} {:>8} {:>8} {:>8}",
+        "technique", "spp", "seconds", "relMSE", "RMSE", "p50", "p90", "p99"
+    );
+    let mut rows = Vec::new();
+    for tech in &techs {
+        let mut scene = Scene::load(&a.scene, defines)?;
+        (tech.apply)(&mut scene);
+        let scene = Arc::new(scene);
+        let mut spent = 0.0;
+        let mut spp = 1;
+        while spp <= a.max_spp && spent <= a.budget {
+            let t = Instant::now();
+            let img = crate::render_local(scene.clone(), spp, seed, 32, threads, &|_| {})?.0;
+            let seconds = t.elapsed().as_secs_f64();
+            spent += seconds;
+            let c = img.compare(&reference).with_context(|| {
+                format!(
+                    "reference is {}x{}, the scene renders {}x{}",
+                    reference.width, reference.height, img.width, img.height
+                )
+            })?;
+            let [p50, p90, p99] = c.rel_err_percentiles;
+            let row = Row {
+                technique: tech.name.clone(),
+                spp,
+                seconds,
+                rel_mse: c.rel_mse,
+                rmse: c.rmse,
+                p50,
+                p90,
+                p99,
+            };
+            println!(
+                "{:<34} {:>6} {:>9.3} {:>10.3e} {:>10.3e} {:>8.4} {:>8.4} {:>8.4}",
+                row.technique, spp, seconds, row.rel_mse, row.rmse, p50, p90, p99
+            );
+            rows.push(row);
+            spp *= 2;
+        }
+    }
+    summary(&rows, &techs[0].name);
+    std::fs::write(dir.join("report.csv"), csv(&rows)).context("cannot write report.csv")?;
+    crate::plot::error_vs_time(&rows, &dir.join("report.svg"), &dir.join("report.png"))?;
+    println!(
+        "wrote {}",
+        ["report.csv", "report.svg", "report.png"].map(|f| dir.join(f).display().to_string()).join(", ")
+    );
+    Ok(())
+}
+
+/// Least-squares slope of log(relMSE) against log(x).
+pub fn log_slope(points: impl Iterator<Item = (f64, f64)>) -> f64 {
+    let p: Vec<(f64, f64)> = points.map(|(x, y)| (x.ln(), y.ln())).collect();
+    let n = p.len() as f64;
+    let (mx, my) = (p.iter().map(|q| q.0).sum::<f64>() / n, p.iter().map(|q| q.1).sum::<f64>() / n);
+    let sxy: f64 = p.iter().map(|q| (q.0 - mx) * (q.1 - my)).sum();
+    let sxx: f64 = p.iter().map(|q| (q.0 - mx).powi(2)).sum();
+    sxy / sxx
+}
+
+/// Time each technique needs to reach the main technique's last relMSE (log-log interpolation),
+/// its slope, and the error it levels off at: what it costs and what bias it keeps.
+fn summary(rows: &[Row], main: &str) {
+    let Some(target) = rows.iter().filter(|r| r.technique == main).last().map(|r| r.rel_mse) else { return };
+    println!("\ntime to reach relMSE {target:.3e} (the first technique's last render), slope of relMSE against time:");
+    let mut names: Vec<&str> = Vec::new();
+    for r in rows {
+        if !names.contains(&r.technique.as_str()) {
+            names.push(&r.technique);
+        }
+    }
+    for name in names {
+        let s: Vec<&Row> = rows.iter().filter(|r| r.technique == name).collect();
+        let slope = if s.len() > 1 { log_slope(s.iter().map(|r| (r.seconds, r.rel_mse))) } else { f64::NAN };
+        let reach = s.windows(2).find(|w| w[1].rel_mse <= target).map(|w| {
+            let f = (target.ln() - w[0].rel_mse.ln()) / (w[1].rel_mse.ln() - w[0].rel_mse.ln());
+            (w[0].seconds.ln() + f.clamp(0.0, 1.0) * (w[1].seconds.ln() - w[0].seconds.ln())).exp()
+        });
+        let reach = match (reach, s.first()) {
+            (Some(t), _) => format!("{t:.2} s"),
+            (None, Some(first)) if first.rel_mse <= target => format!("{:.2} s", first.seconds),
+            _ => {
+                let last = s.last().map_or(f64::NAN, |r| r.rel_mse);
+                format!("not reached: levels off near {last:.3e} (bias)")
+            }
+        };
+        println!("  {name:<34} slope {slope:>6.2}   {reach}");
+    }
+}
+
+fn csv(rows: &[Row]) -> String {
+    let mut out = String::from("technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99\n");
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "\"{}\",{},{:.6},{:.6e},{:.6e},{:.6},{:.6},{:.6}",
+            r.technique, r.spp, r.seconds, r.rel_mse, r.rmse, r.p50, r.p90, r.p99
+        );
+    }
+    out
+}

@@ -1,0 +1,100 @@
+//! `furnace report`: error against a reference versus time, per sample count and technique.
+
+mod common;
+
+use std::process::Command;
+
+use common::*;
+
+fn furnace() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_furnace"))
+}
+
+struct Row {
+    technique: String,
+    spp: f64,
+    rel_mse: f64,
+}
+
+fn read_csv(path: &std::path::Path) -> Vec<Row> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99"
+    );
+    lines
+        .map(|l| {
+            let (name, rest) = l.strip_prefix('"').unwrap().split_once("\",").unwrap();
+            let f: Vec<f64> = rest.split(',').map(|v| v.parse().unwrap()).collect();
+            assert_eq!(f.len(), 7, "{l}");
+            assert!(f.iter().all(|v| v.is_finite() && *v >= 0.0), "{l}");
+            assert!(f[4] <= f[5] && f[5] <= f[6], "percentiles out of order: {l}");
+            Row { technique: name.to_string(), spp: f[0], rel_mse: f[2] }
+        })
+        .collect()
+}
+
+fn slope(rows: &[&Row]) -> f64 {
+    let p: Vec<(f64, f64)> = rows.iter().map(|r| (r.spp.ln(), r.rel_mse.ln())).collect();
+    let n = p.len() as f64;
+    let (mx, my) = (p.iter().map(|q| q.0).sum::<f64>() / n, p.iter().map(|q| q.1).sum::<f64>() / n);
+    let sxy: f64 = p.iter().map(|q| (q.0 - mx) * (q.1 - my)).sum();
+    let sxx: f64 = p.iter().map(|q| (q.0 - mx).powi(2)).sum();
+    sxy / sxx
+}
+
+/// cbox (diffuse) against Mitsuba's reference: the path tracer's relMSE falls as 1/N (slope
+/// within -1.2 to -0.8 on the log-log plot), max_depth 2 converges to the wrong answer (its
+/// error levels off far above), and the CSV, SVG and PNG are written.
+#[test]
+fn path_tracer_error_falls_as_one_over_n_and_a_low_max_depth_levels_off() {
+    let dir = scratch("report-cbox");
+    let o = furnace()
+        .arg("report")
+        .arg(scenes().join("cbox.xml"))
+        .arg("--reference")
+        .arg(scenes().join("refs/cbox.exr"))
+        .args(["--max-spp", "16", "--threads", "2", "-o"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{out}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("refs/cbox.exr") && out.contains("levels off"), "{out}");
+    let rows = read_csv(&dir.join("report.csv"));
+    let main: Vec<&Row> = rows.iter().filter(|r| r.technique.starts_with("path tracer")).collect();
+    assert_eq!(main.iter().map(|r| r.spp).collect::<Vec<_>>(), [1.0, 2.0, 4.0, 8.0, 16.0]);
+    let s = slope(&main);
+    assert!((-1.2..=-0.8).contains(&s), "path tracer slope {s}");
+    let shallow: Vec<&Row> = rows.iter().filter(|r| r.technique == "max_depth 2").collect();
+    assert_eq!(shallow.len(), 5);
+    let s2 = slope(&shallow);
+    assert!(s2 > -0.3, "max_depth 2 should level off, slope {s2}");
+    let last = |v: &[&Row]| v.last().unwrap().rel_mse;
+    assert!(last(&shallow) > 3.0 * last(&main), "bias of max_depth 2 not visible");
+    let svg = std::fs::read_to_string(dir.join("report.svg")).unwrap();
+    assert!(svg.contains("<svg") && svg.contains("ideal 1/N") && svg.contains("max_depth 2"));
+    let png = image::open(dir.join("report.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (960, 640));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Without --reference the report renders its own, says so, and keeps it.
+#[test]
+fn without_a_reference_the_report_renders_its_own() {
+    let dir = scratch("report-own");
+    let o = furnace()
+        .arg("report")
+        .arg(scenes().join("small.xml"))
+        .args(["--max-spp", "2", "--ref-spp", "8", "-D", "width=16", "-o"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{out}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("our own render at 8 spp"), "{out}");
+    assert!(dir.join("reference.exr").exists());
+    assert!(read_csv(&dir.join("report.csv")).len() >= 2);
+    std::fs::remove_dir_all(&dir).ok();
+}
