@@ -62,6 +62,19 @@ struct Technique {
 /// effect its render plan uses that has one.
 fn techniques(scene: &Scene) -> Vec<Technique> {
     let mut t = vec![Technique { name: "path tracer (as the scene says)".into(), apply: Box::new(|_| {}) }];
+    if scene.plan.mis {
+        t.push(Technique {
+            name: "BSDF sampling only".into(),
+            apply: Box::new(|s: &mut Scene| {
+                s.plan.light_sampling = false;
+                s.plan.mis = false;
+            }),
+        });
+        t.push(Technique {
+            name: "light sampling only".into(),
+            apply: Box::new(|s: &mut Scene| s.plan.mis = false),
+        });
+    }
     let depth = scene.integrator.max_depth;
     // max_depth counts path vertices (Mitsuba: -1 unbounded); 2 is direct light only.
     for d in [2u32, 3] {
@@ -172,7 +185,7 @@ pub fn log_slope(points: impl Iterator<Item = (f64, f64)>) -> f64 {
 /// Time each technique needs to reach the main technique's last relMSE (log-log interpolation),
 /// its slope, and the error it levels off at: what it costs and what bias it keeps.
 fn summary(rows: &[Row], main: &str) {
-    let Some(target) = rows.iter().filter(|r| r.technique == main).last().map(|r| r.rel_mse) else { return };
+    let Some(target) = rows.iter().rfind(|r| r.technique == main).map(|r| r.rel_mse) else { return };
     println!("\ntime to reach relMSE {target:.3e} (the first technique's last render), slope of relMSE against time:");
     let mut names: Vec<&str> = Vec::new();
     for r in rows {
@@ -187,13 +200,19 @@ fn summary(rows: &[Row], main: &str) {
             let f = (target.ln() - w[0].rel_mse.ln()) / (w[1].rel_mse.ln() - w[0].rel_mse.ln());
             (w[0].seconds.ln() + f.clamp(0.0, 1.0) * (w[1].seconds.ln() - w[0].seconds.ln())).exp()
         });
-        let reach = match (reach, s.first()) {
-            (Some(t), _) => format!("{t:.2} s"),
-            (None, Some(first)) if first.rel_mse <= target => format!("{:.2} s", first.seconds),
-            _ => {
-                let last = s.last().map_or(f64::NAN, |r| r.rel_mse);
-                format!("not reached: levels off near {last:.3e} (bias)")
+        // Not reached: still falling (the last doubling's slope below -0.5) means slow, and
+        // the time is extrapolated at that slope; levelling off means bias.
+        let tail = s.len().checked_sub(2).map(|i| log_slope(s[i..].iter().map(|r| (r.seconds, r.rel_mse))));
+        let reach = match (reach, s.first(), s.last(), tail) {
+            (Some(t), ..) => format!("{t:.2} s"),
+            (None, Some(first), ..) if first.rel_mse <= target * 1.001 => format!("{:.2} s", first.seconds),
+            (None, _, Some(last), Some(k)) if k < -0.5 => {
+                let t = last.seconds * (last.rel_mse / target).powf(-1.0 / k);
+                format!("about {t:.1} s (extrapolated at slope {k:.2})")
             }
+            (None, _, Some(last), _) if last.rel_mse <= target * 1.001 => format!("{:.2} s", last.seconds),
+            (None, _, Some(last), _) => format!("not reached: levels off near {:.3e} (bias)", last.rel_mse),
+            _ => String::new(),
         };
         println!("  {name:<34} slope {slope:>6.2}   {reach}");
     }

@@ -46,7 +46,8 @@ fn slope(rows: &[&Row]) -> f64 {
 
 /// cbox (diffuse) against Mitsuba's reference: the path tracer's relMSE falls as 1/N (slope
 /// within -1.2 to -0.8 on the log-log plot), max_depth 2 converges to the wrong answer (its
-/// error levels off far above), and the CSV, SVG and PNG are written.
+/// error levels off far above), the MIS ablations behave as they must, and the CSV, SVG and
+/// PNG are written.
 #[test]
 fn path_tracer_error_falls_as_one_over_n_and_a_low_max_depth_levels_off() {
     let dir = scratch("report-cbox");
@@ -73,6 +74,20 @@ fn path_tracer_error_falls_as_one_over_n_and_a_low_max_depth_levels_off() {
     assert!(s2 > -0.3, "max_depth 2 should level off, slope {s2}");
     let last = |v: &[&Row]| v.last().unwrap().rel_mse;
     assert!(last(&shallow) > 3.0 * last(&main), "bias of max_depth 2 not visible");
+    // MIS ablations: light sampling alone is as good as MIS on this small diffuse-lit box;
+    // BSDF sampling alone rarely finds the small light: far noisier, but still falling as 1/N.
+    let by = |name: &str| -> Vec<&Row> { rows.iter().filter(|r| r.technique == name).collect() };
+    let (light, bsdf) = (by("light sampling only"), by("BSDF sampling only"));
+    assert_eq!((light.len(), bsdf.len()), (5, 5));
+    assert!(
+        (last(&light) / last(&main) - 1.0).abs() < 0.05,
+        "light only {} vs MIS {}",
+        last(&light),
+        last(&main)
+    );
+    assert!(last(&bsdf) > 10.0 * last(&main), "BSDF only {} vs MIS {}", last(&bsdf), last(&main));
+    let s3 = slope(&bsdf);
+    assert!((-1.3..=-0.7).contains(&s3), "BSDF-only slope {s3}");
     let svg = std::fs::read_to_string(dir.join("report.svg")).unwrap();
     assert!(svg.contains("<svg") && svg.contains("ideal 1/N") && svg.contains("max_depth 2"));
     let png = image::open(dir.join("report.png")).unwrap();

@@ -24,7 +24,9 @@ pub struct RenderPlan {
     /// Next-event estimation: some light can be sampled and some BSDF is not purely specular.
     pub light_sampling: bool,
     /// MIS (power heuristic) between BSDF and light sampling: light sampling of lights that
-    /// BSDF-sampled rays can also hit (area, constant and envmap lights).
+    /// BSDF-sampled rays can also hit (area, constant and envmap lights). With light sampling
+    /// but without MIS, emission that BSDF-sampled rays find is left to light sampling (only
+    /// reachable as an ablation: derived plans have MIS whenever such lights exist).
     pub mis: bool,
     /// Rays that leave the scene look up lights at infinity.
     pub escaped_rays_lookup: bool,

@@ -52,6 +52,8 @@ pub fn li(
                     let le = light.le_infinite(ray.d);
                     let w = if unweighted {
                         1.0
+                    } else if !plan.mis {
+                        0.0
                     } else {
                         mis_power(prev_pdf, sel_pdf * light.pdf_infinite(ray.d))
                     };
@@ -68,6 +70,8 @@ pub fn li(
             if le != Rgb::ZERO {
                 let w = if unweighted {
                     1.0
+                } else if !plan.mis {
+                    0.0 // light sampling alone (an ablation): this light was sampled by NEE
                 } else {
                     mis_power(prev_pdf, sel_pdf * light.pdf_hit(&scene.shapes, prev_p, ray.d, &it))
                 };
@@ -112,7 +116,11 @@ pub fn li(
                         st.shadow_rays += 1;
                         if !scene.occluded(&shadow) {
                             let light_pdf = ls.pdf * sel_pdf;
-                            let w = if ls.delta { 1.0 } else { mis_power(light_pdf, bsdf.pdf(tc, wo, wi)) };
+                            let w = if ls.delta || !plan.mis {
+                                1.0
+                            } else {
+                                mis_power(light_pdf, bsdf.pdf(tc, wo, wi))
+                            };
                             l += beta * f * ls.li * (w / light_pdf);
                         }
                     }
