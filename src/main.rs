@@ -159,7 +159,7 @@ fn render(a: RenderArgs) -> Result<()> {
     );
     let t1 = Instant::now();
     let threads = a.threads.unwrap_or(0);
-    let (image, stats) =
+    let (image, stats, estimate) =
         render_local(Arc::new(scene), spp, seed, a.tile, threads, &|done| bar.set_position(done))?;
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
@@ -177,6 +177,9 @@ fn render(a: RenderArgs) -> Result<()> {
         stats.shadow_rays as f64 / stats.samples as f64,
         stats.bsdf_samples as f64 / stats.samples as f64
     );
+    if let Some(e) = estimate {
+        tracing::info!("estimated relative MSE (from the render's own variance): {e:.3e}");
+    }
     if stats.dropped > 0 {
         tracing::warn!("{} samples were NaN, infinite or above 2^40 and were dropped", stats.dropped);
     }
@@ -185,7 +188,8 @@ fn render(a: RenderArgs) -> Result<()> {
 }
 
 /// Renders on this machine through the farm in one process: a coordinator that stores nothing
-/// and one worker on `threads` threads (0: all cores). The bytes are the farm's.
+/// and one worker on `threads` threads (0: all cores). The bytes are the farm's. Returns the
+/// image, the render statistics and the estimated relative MSE.
 pub fn render_local(
     scene: Arc<Scene>,
     spp: u64,
@@ -193,7 +197,7 @@ pub fn render_local(
     tile: u32,
     threads: usize,
     progress: &dyn Fn(u64),
-) -> Result<(Image, Stats)> {
+) -> Result<(Image, Stats, Option<f64>)> {
     let (w, h) = (scene.film.crop_width, scene.film.crop_height);
     let settings = JobSettings {
         width: w,
@@ -233,7 +237,7 @@ pub fn render_local(
     }
     let stats = link.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
     let image = lock().image(&job)?;
-    Ok((image, stats))
+    Ok((image, stats, status.estimated_rel_mse))
 }
 
 fn default_output(scene: &Path) -> PathBuf {

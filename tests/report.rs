@@ -21,14 +21,16 @@ fn read_csv(path: &std::path::Path) -> Vec<Row> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next().unwrap(),
-        "technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99"
+        "technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99,estimated_rel_mse"
     );
     lines
         .map(|l| {
             let (name, rest) = l.strip_prefix('"').unwrap().split_once("\",").unwrap();
             let f: Vec<f64> = rest.split(',').map(|v| v.parse().unwrap()).collect();
-            assert_eq!(f.len(), 7, "{l}");
-            assert!(f.iter().all(|v| v.is_finite() && *v >= 0.0), "{l}");
+            assert_eq!(f.len(), 8, "{l}");
+            // The estimate needs 2 samples per pixel.
+            assert!(f[..7].iter().all(|v| v.is_finite() && *v >= 0.0), "{l}");
+            assert_eq!(f[7].is_finite(), f[0] >= 2.0, "{l}");
             assert!(f[4] <= f[5] && f[5] <= f[6], "percentiles out of order: {l}");
             Row { technique: name.to_string(), spp: f[0], rel_mse: f[2] }
         })
@@ -112,4 +114,20 @@ fn without_a_reference_the_report_renders_its_own() {
     assert!(dir.join("reference.exr").exists());
     assert!(read_csv(&dir.join("report.csv")).len() >= 2);
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The error a render estimates from its own sums (what noise-target jobs steer by) tracks the
+/// error measured against Mitsuba's reference on cbox.
+#[test]
+fn estimated_error_tracks_the_measured_error() {
+    let scene = load("cbox.xml", &[]);
+    let reference = reference("cbox.exr");
+    for spp in [4, 16, 64] {
+        let acc = render(&scene, spp, 0).0;
+        let measured = acc.develop().compare(&reference).unwrap().rel_mse;
+        let estimated = acc.estimated_rel_mse();
+        let ratio = estimated / measured;
+        eprintln!("cbox {spp} spp: estimated {estimated:.3e}, measured {measured:.3e}, ratio {ratio:.3}");
+        assert!((0.5..=2.0).contains(&ratio), "{spp} spp: estimate {estimated} vs measured {measured}");
+    }
 }

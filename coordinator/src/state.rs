@@ -695,6 +695,7 @@ impl Coordinator {
             samples_total: j.samples_total(),
             samples_per_second: rate,
             eta_seconds: (rate > 0.0).then(|| left as f64 / rate),
+            estimated_rel_mse: Some(j.accum.estimated_rel_mse()).filter(|e| e.is_finite()),
             workers: j.workers.keys().cloned().collect(),
             errors: j.errors.clone(),
             plan: j.render_plan.clone(),

@@ -168,6 +168,38 @@ impl Accum {
         }
     }
 
+    /// The relative MSE this accumulation's image has against the converged one, estimated
+    /// from its own sums: per pixel, the variance of the sample luminance (from the squared
+    /// sums and the filtered mean, with Bessel's correction) over the sample count, relative
+    /// to mean^2 + 0.01 (the
+    /// denominator of `Image::compare`'s relMSE), averaged over pixels with samples.
+    /// Pixel filters wider than a pixel average neighbours' samples too, so there it reads
+    /// high; tests state the factor.
+    pub fn estimated_rel_mse(&self) -> f64 {
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for p in &self.pixels {
+            if p.count < 2 || p.weight == 0 {
+                continue;
+            }
+            let w = p.weight as f64;
+            let mean = luminance(Rgb::new(
+                (p.rgb[0] as f64 / w) as f32,
+                (p.rgb[1] as f64 / w) as f32,
+                (p.rgb[2] as f64 / w) as f32,
+            )) as f64;
+            let c = p.count as f64;
+            let second = p.lum2 as f64 / (1u64 << FIXED_BITS_LUM2) as f64 / c;
+            // Bessel's correction: the mean is estimated from the same samples.
+            let var = (second - mean * mean).max(0.0) * c / (c - 1.0);
+            sum += var / c / (mean * mean + 1e-2);
+            n += 1;
+        }
+        if n == 0 {
+            return f64::INFINITY; // fewer than 2 samples per pixel: unknown
+        }
+        sum / n as f64
+    }
+
     /// Total samples counted.
     pub fn sample_count(&self) -> u64 {
         self.pixels.iter().map(|p| p.count).sum()

@@ -212,6 +212,10 @@ pub struct JobStatus {
     pub samples_total: u64,
     pub samples_per_second: f64,
     pub eta_seconds: Option<f64>,
+    /// Relative MSE of the merge so far, estimated from its own sums (see
+    /// `Accum::estimated_rel_mse`); absent before pixels have 2 samples.
+    #[serde(default)]
+    pub estimated_rel_mse: Option<f64>,
     pub workers: Vec<String>,
     pub errors: Vec<String>,
     pub plan: String,
