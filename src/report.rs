@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use furnace_core::scene::xml::{Doc, Prop, Value};
 use furnace_core::{Image, Scene};
 
 #[derive(Args)]
@@ -54,40 +55,69 @@ pub struct Row {
     pub estimated: f64,
 }
 
-/// A variant of the scene to measure: a name and a change to the loaded scene.
+/// A variant of the scene to measure: a name, a change to the parsed document (before the
+/// scene is built) and a change to the loaded scene.
 struct Technique {
     name: String,
+    edit: Box<dyn Fn(&mut Doc)>,
     apply: Box<dyn Fn(&mut Scene)>,
+}
+
+impl Technique {
+    fn after_load(name: impl Into<String>, apply: impl Fn(&mut Scene) + 'static) -> Technique {
+        Technique { name: name.into(), edit: Box::new(|_| {}), apply: Box::new(apply) }
+    }
+    fn edited(name: impl Into<String>, edit: impl Fn(&mut Doc) + 'static) -> Technique {
+        Technique { name: name.into(), edit: Box::new(edit), apply: Box::new(|_| {}) }
+    }
+    fn load(&self, path: &std::path::Path, defines: &[(String, String)]) -> Result<Scene> {
+        let mut scene = Scene::load_edited(path, defines, &*self.edit)?;
+        (self.apply)(&mut scene);
+        Ok(scene)
+    }
 }
 
 /// The techniques to compare for this scene: the scene as it is, then an ablation for each
 /// effect its render plan uses that has one.
 fn techniques(scene: &Scene) -> Vec<Technique> {
-    let mut t = vec![Technique { name: "path tracer (as the scene says)".into(), apply: Box::new(|_| {}) }];
-    if scene.plan.mis {
-        t.push(Technique {
-            name: "BSDF sampling only".into(),
-            apply: Box::new(|s: &mut Scene| {
-                s.plan.light_sampling = false;
-                s.plan.mis = false;
-            }),
-        });
-        t.push(Technique {
-            name: "light sampling only".into(),
-            apply: Box::new(|s: &mut Scene| s.plan.mis = false),
-        });
+    let plan = &scene.plan;
+    let mut t = vec![Technique::after_load("path tracer (as the scene says)", |_| {})];
+    if plan.mis {
+        t.push(Technique::after_load("BSDF sampling only", |s| {
+            s.plan.light_sampling = false;
+            s.plan.mis = false;
+        }));
+        t.push(Technique::after_load("light sampling only", |s| s.plan.mis = false));
+    }
+    if plan.bsdfs.contains(&"hair") {
+        // The same fibres with a diffuse BSDF (reflectance 0.5): what the hair model costs.
+        t.push(Technique::edited("diffuse instead of hair", |doc| {
+            doc.edit("bsdf", "hair", |o| {
+                o.plugin = "diffuse".into();
+                o.props.clear();
+                o.children.clear();
+            })
+        }));
+    }
+    if plan.textures.iter().any(|l| l.starts_with("bitmap")) {
+        for mode in ["nearest", "bilinear", "trilinear", "ewa"] {
+            t.push(Technique::edited(format!("texture filter {mode}"), move |doc| {
+                doc.edit("texture", "bitmap", |o| {
+                    let pos = o.pos;
+                    o.props.retain(|p| p.name != "filter_type");
+                    o.props.push(Prop::new("filter_type", Value::Str(mode.into()), pos));
+                })
+            }));
+        }
     }
     let depth = scene.integrator.max_depth;
     // max_depth counts path vertices (Mitsuba: -1 unbounded); 2 is direct light only.
     for d in [2u32, 3] {
         if depth == u32::MAX || depth > d {
-            t.push(Technique {
-                name: format!("max_depth {d}"),
-                apply: Box::new(move |s: &mut Scene| {
-                    s.integrator.max_depth = d;
-                    s.plan.max_depth = d;
-                }),
-            });
+            t.push(Technique::after_load(format!("max_depth {d}"), move |s| {
+                s.integrator.max_depth = d;
+                s.plan.max_depth = d;
+            }));
         }
     }
     t
@@ -129,9 +159,7 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
     );
     let mut rows = Vec::new();
     for tech in &techs {
-        let mut scene = Scene::load(&a.scene, defines)?;
-        (tech.apply)(&mut scene);
-        let scene = Arc::new(scene);
+        let scene = Arc::new(tech.load(&a.scene, defines)?);
         let mut spent = 0.0;
         let mut spp = 1;
         while spp <= a.max_spp && spent <= a.budget {

@@ -88,6 +88,17 @@ impl Scene {
         build::build(&doc)
     }
 
+    /// Loads a scene file, letting `edit` change the parsed document before it is built.
+    pub fn load_edited(
+        path: &Path,
+        defines: &[(String, String)],
+        edit: &dyn Fn(&mut xml::Doc),
+    ) -> Result<Scene, SceneError> {
+        let mut doc = xml::parse_file(path, defines)?;
+        edit(&mut doc);
+        build::build(&doc)
+    }
+
     /// Loads scene XML held in memory; relative asset paths resolve against `path`'s folder.
     pub fn load_str(text: &str, path: &Path, defines: &[(String, String)]) -> Result<Scene, SceneError> {
         let doc = xml::parse_str(text, path, defines)?;

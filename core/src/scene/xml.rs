@@ -55,6 +55,13 @@ pub struct Prop {
     used: Cell<bool>,
 }
 
+impl Prop {
+    /// A property set by a program rather than read from the file (at the object's position).
+    pub fn new(name: &str, value: Value, pos: Pos) -> Prop {
+        Prop { name: name.to_string(), value, pos, used: Cell::new(false) }
+    }
+}
+
 /// A nested object: `<bsdf .../>` inside a shape, or a `<ref id=.../>`.
 #[derive(Debug)]
 pub struct Child {
@@ -88,6 +95,14 @@ const OBJECT_TAGS: &[&str] =
     &["shape", "bsdf", "texture", "emitter", "sensor", "film", "rfilter", "sampler", "integrator"];
 
 impl Doc {
+    /// Calls `f` on every object with this tag and plugin (`furnace report`'s ablations edit
+    /// a parsed scene this way before it is built).
+    pub fn edit(&mut self, tag: &str, plugin: &str, mut f: impl FnMut(&mut Obj)) {
+        for o in self.objs.iter_mut().filter(|o| o.tag == tag && o.plugin == plugin) {
+            f(o);
+        }
+    }
+
     pub fn err(&self, pos: Pos, message: impl Into<String>) -> SceneError {
         SceneError::at(&self.file, pos, message)
     }
