@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use furnace_core::light::{Light, LightKind};
 use furnace_core::scene::xml::{Doc, Prop, Value};
 use furnace_core::{Image, Scene};
 
@@ -88,6 +89,15 @@ fn techniques(scene: &Scene) -> Vec<Technique> {
             s.plan.mis = false;
         }));
         t.push(Technique::after_load("light sampling only", |s| s.plan.mis = false));
+    }
+    if plan.lights.iter().any(|&(k, _)| k == LightKind::Envmap) {
+        t.push(Technique::after_load("environment sampled uniformly", |s| {
+            for l in &mut s.lights {
+                if let Light::Envmap(e) = l {
+                    Arc::make_mut(e).uniform = true;
+                }
+            }
+        }));
     }
     if plan.bsdfs.contains(&"hair") {
         // The same fibres with a diffuse BSDF (reflectance 0.5): what the hair model costs.

@@ -18,10 +18,10 @@ use std::sync::Arc;
 
 use glam::{Mat3, Vec2, Vec3};
 
-use crate::math::{luminance, Rgb, PI};
+use crate::math::{luminance, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
 use crate::texture::{Bitmap, FilterType};
 
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct EnvMap {
     bitmap: Arc<Bitmap>,
     scale: f32,
@@ -37,6 +37,9 @@ pub struct EnvMap {
     col_cdf: Vec<f64>,
     /// Sum over texels of luminance x solid angle (the map's luminance integral).
     total: f64,
+    /// Sample directions uniformly over the sphere instead of by the map's luminance: only
+    /// as an ablation (`furnace report`), to show what importance sampling buys.
+    pub uniform: bool,
 }
 
 impl EnvMap {
@@ -88,6 +91,7 @@ impl EnvMap {
             row_cdf,
             col_cdf,
             total,
+            uniform: false,
         }
     }
 
@@ -153,6 +157,9 @@ impl EnvMap {
         if self.total <= 0.0 {
             return 0.0;
         }
+        if self.uniform {
+            return INV_FOUR_PI;
+        }
         let (i, j) = self.texel_of(d);
         (self.sample_lum[j * self.bitmap.width + i] as f64 / self.total) as f32
     }
@@ -161,6 +168,9 @@ impl EnvMap {
     pub fn sample(&self, u: Vec2) -> Option<(Vec3, f32)> {
         if self.total <= 0.0 {
             return None;
+        }
+        if self.uniform {
+            return Some((square_to_uniform_sphere(u), INV_FOUR_PI));
         }
         let (w, h) = (self.bitmap.width, self.bitmap.height);
         let (j, fv) = pick(&self.row_cdf, u.y as f64);
