@@ -187,6 +187,7 @@ fn main() {
         spp_per_chunk: 1,
         seed: 0,
         priority: 0,
+        target_rel_error: None,
     };
     // Small chunks: 8 x 8 pixels x 1 sample, 4096 of them. Round trips per second.
     println!("round trips: cbox {w}x{h}, 8x8-pixel chunks of 1 sample, 4096 chunks");

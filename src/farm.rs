@@ -77,6 +77,9 @@ pub struct SubmitArgs {
     pub spp_per_chunk: u64,
     #[arg(long, default_value_t = 0)]
     pub priority: i32,
+    /// Stop each tile at this estimated relative error (then --spp is the cap).
+    #[arg(long)]
+    pub target_rel_error: Option<f64>,
     /// Follow progress and download the result.
     #[arg(long)]
     pub wait: bool,
@@ -238,6 +241,7 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
         spp_per_chunk: a.spp_per_chunk,
         seed: a.seed.unwrap_or(scene.seed),
         priority: a.priority,
+        target_rel_error: a.target_rel_error,
     };
     let spec = JobSpec { bundle, settings };
     let key = blake3::hash(serde_json::to_string(&spec)?.as_bytes()).to_hex()[..32].to_string();
@@ -259,9 +263,10 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
         let st = api.status(&id)?;
         bar.set_length(st.samples_total);
         bar.set_position(st.samples_done);
+        let error = st.estimated_rel_mse.map(|e| format!(", error {:.3}", e.sqrt())).unwrap_or_default();
         bar.set_message(match st.eta_seconds {
-            Some(e) => format!("{:.0} samples/s, ETA {e:.0}s", st.samples_per_second),
-            None => String::new(),
+            Some(e) => format!("{:.0} samples/s, ETA {e:.0}s{error}", st.samples_per_second),
+            None => error,
         });
         // Often near the end, rarely in a long job: a twentieth of the time left, 0.1 to 2 s.
         let pause = st.eta_seconds.map_or(0.25, |e| (e / 20.0).clamp(0.1, 2.0));

@@ -66,6 +66,13 @@ struct RenderArgs {
     /// Tile size in pixels (does not change the image).
     #[arg(long, default_value_t = 32)]
     tile: u32,
+    /// Stop each tile once its estimated relative error is at most this (--spp is then the
+    /// cap). The image depends on --tile and --spp-per-chunk, not on threads.
+    #[arg(long)]
+    target_rel_error: Option<f64>,
+    /// Samples per pixel of one chunk (with --target-rel-error: how often a tile is judged).
+    #[arg(long, default_value_t = 64)]
+    spp_per_chunk: u64,
     /// Exposure of the PNG preview, in stops.
     #[arg(long, default_value_t = 0.0)]
     exposure: f32,
@@ -159,8 +166,18 @@ fn render(a: RenderArgs) -> Result<()> {
     );
     let t1 = Instant::now();
     let threads = a.threads.unwrap_or(0);
-    let (image, stats, estimate) =
-        render_local(Arc::new(scene), spp, seed, a.tile, threads, &|done| bar.set_position(done))?;
+    let settings = JobSettings {
+        spp,
+        tile_size: a.tile,
+        spp_per_chunk: a.spp_per_chunk,
+        seed,
+        target_rel_error: a.target_rel_error,
+        ..local_settings()
+    };
+    let (image, stats, estimate) = render_local(Arc::new(scene), settings, threads, &|done, total| {
+        bar.set_length(total);
+        bar.set_position(done)
+    })?;
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
     let threads = if threads == 0 { rayon::current_num_threads() } else { threads };
@@ -168,8 +185,10 @@ fn render(a: RenderArgs) -> Result<()> {
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;
     tracing::info!(
-        "rendered {w}x{h} at {spp} spp in {secs:.2}s on {threads} threads: {:.3} Msamples/s",
-        total as f64 / secs / 1e6
+        "rendered {w}x{h}: {} samples ({:.1} spp of at most {spp}) in {secs:.2}s on {threads} threads: {:.3} Msamples/s",
+        stats.samples,
+        stats.samples as f64 / (w as f64 * h as f64),
+        stats.samples as f64 / secs / 1e6
     );
     tracing::info!(
         "per sample: {:.2} rays, {:.2} shadow rays, {:.2} BSDF samples",
@@ -192,22 +211,10 @@ fn render(a: RenderArgs) -> Result<()> {
 /// image, the render statistics and the estimated relative MSE.
 pub fn render_local(
     scene: Arc<Scene>,
-    spp: u64,
-    seed: u64,
-    tile: u32,
+    settings: JobSettings,
     threads: usize,
-    progress: &dyn Fn(u64),
+    progress: &dyn Fn(u64, u64),
 ) -> Result<(Image, Stats, Option<f64>)> {
-    let (w, h) = (scene.film.crop_width, scene.film.crop_height);
-    let settings = JobSettings {
-        width: w,
-        height: h,
-        spp,
-        tile_size: tile.max(1),
-        spp_per_chunk: 64,
-        seed,
-        priority: 0,
-    };
     let coord = Arc::new(Mutex::new(Coordinator::ephemeral()?));
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
     let job = lock().submit_scene(scene, settings)?;
@@ -228,7 +235,8 @@ pub fn render_local(
         r
     });
     while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = done.recv_timeout(Duration::from_millis(50)) {
-        progress(lock().status(&job)?.samples_done);
+        let st = lock().status(&job)?;
+        progress(st.samples_done, st.samples_total);
     }
     worker.join().map_err(|_| anyhow::anyhow!("the render worker panicked"))??;
     let status = lock().status(&job)?;
@@ -238,6 +246,19 @@ pub fn render_local(
     let stats = link.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
     let image = lock().image(&job)?;
     Ok((image, stats, status.estimated_rel_mse))
+}
+
+/// Settings of a render on this machine: the scene's size (filled in at submission), no
+/// priority, no target error.
+pub fn local_settings() -> JobSettings {
+    JobSettings {
+        width: 0,
+        height: 0,
+        tile_size: 32,
+        priority: 0,
+        target_rel_error: None,
+        ..JobSettings::default()
+    }
 }
 
 fn default_output(scene: &Path) -> PathBuf {

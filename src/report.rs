@@ -13,6 +13,7 @@ use clap::Args;
 use furnace_core::light::{Light, LightKind};
 use furnace_core::scene::xml::{Doc, Prop, Value};
 use furnace_core::{Image, Scene};
+use furnace_proto::JobSettings;
 
 #[derive(Args)]
 pub struct ReportArgs {
@@ -157,7 +158,8 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
             println!("reference: our own render at {spp} spp, seed {} (no --reference given)", seed + 1);
             let scene = Arc::new(Scene::load(&a.scene, defines)?);
             let t = Instant::now();
-            let img = crate::render_local(scene, spp, seed + 1, 32, threads, &|_| {})?.0;
+            let settings = JobSettings { spp, seed: seed + 1, ..crate::local_settings() };
+            let img = crate::render_local(scene, settings, threads, &|_, _| {})?.0;
             println!("  rendered in {:.1} s", t.elapsed().as_secs_f64());
             img.write_exr(&dir.join("reference.exr"))?;
             img
@@ -174,7 +176,8 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
         let mut spp = 1;
         while spp <= a.max_spp && spent <= a.budget {
             let t = Instant::now();
-            let (img, _, estimated) = crate::render_local(scene.clone(), spp, seed, 32, threads, &|_| {})?;
+            let settings = JobSettings { spp, seed, ..crate::local_settings() };
+            let (img, _, estimated) = crate::render_local(scene.clone(), settings, threads, &|_, _| {})?;
             let estimated = estimated.unwrap_or(f64::NAN);
             let seconds = t.elapsed().as_secs_f64();
             spent += seconds;

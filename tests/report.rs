@@ -181,3 +181,41 @@ fn environment_importance_sampling_beats_uniform_sampling() {
     assert!(uniform > 2.0 * is, "p90 uniform {uniform} vs importance sampled {is}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A noise-target render (the farm in one process) stops each tile at its target: the result
+/// meets the target against Mitsuba's reference, uses a small part of the sample cap, and is
+/// the same bits on 1 and 2 threads.
+#[test]
+fn a_noise_target_render_stops_at_its_target_and_meets_it() {
+    let dir = scratch("target");
+    let run = |threads: &str| {
+        let out = dir.join(format!("t{threads}.exr"));
+        let o = furnace()
+            .args(["render", "--spp", "1024", "--spp-per-chunk", "8", "--target-rel-error", "0.1"])
+            .args(["--threads", threads, "-o"])
+            .arg(&out)
+            .arg(scenes().join("cbox.xml"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        assert!(o.status.success(), "{err}");
+        let samples: u64 = err
+            .split("samples (")
+            .next()
+            .and_then(|s| s.trim_end().rsplit(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no sample count in {err}"));
+        (std::fs::read(&out).unwrap(), samples)
+    };
+    let (two, samples) = run("2");
+    let cap = 256 * 256 * 1024;
+    assert!(samples < cap / 10, "{samples} samples of a cap of {cap}: the target did not stop it");
+    let img = furnace_core::Image::read_exr(&dir.join("t2.exr")).unwrap();
+    let measured = img.compare(&reference("cbox.exr")).unwrap().rel_mse;
+    assert!(measured <= 0.1 * 0.1, "measured relMSE {measured} above the target 0.01");
+    assert!(measured > 0.1 * 0.1 / 4.0, "measured relMSE {measured}: far more samples than the target needs");
+    let (one, samples1) = run("1");
+    assert_eq!(samples, samples1);
+    assert!(one == two, "noise-target render differs between 1 and 2 threads");
+    std::fs::remove_dir_all(&dir).ok();
+}

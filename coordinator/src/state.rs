@@ -59,8 +59,14 @@ impl From<rusqlite::Error> for CoordError {
 #[derive(Clone, Debug)]
 enum ChunkState {
     Pending,
-    Leased { epoch: u64, worker: String, deadline: Instant },
+    Leased {
+        epoch: u64,
+        worker: String,
+        deadline: Instant,
+    },
     Done,
+    /// Not rendered: its tile reached the job's target error first.
+    Skipped,
 }
 
 struct Job {
@@ -76,6 +82,10 @@ struct Job {
     accum: Accum,
     /// Chunks whose partial is in `accum`.
     merged: HashSet<u32>,
+    /// Chunks not to render: their tile reached the target error (noise-target jobs).
+    skipped: HashSet<u32>,
+    /// Each tile's latest error estimate (noise-target jobs; NaN until known).
+    tile_est: Vec<f64>,
     /// Chunks in the last checkpoint.
     checkpointed: HashSet<u32>,
     since_checkpoint: usize,
@@ -109,7 +119,7 @@ impl Job {
     /// A copy of the merge for a checkpoint, when one is due (after `CHECKPOINT_EVERY` merges
     /// and `interval`, and when the job is complete) and none is being written.
     fn snapshot(&mut self, data: &Path, interval: Duration) -> Option<Snapshot> {
-        let finished = self.merged.len() == self.plan.len();
+        let finished = self.complete();
         let due = self.since_checkpoint >= CHECKPOINT_EVERY && self.last_checkpoint.elapsed() >= interval;
         if self.checkpointing || !(finished || due) {
             return None;
@@ -120,21 +130,86 @@ impl Job {
         let mut ids: Vec<u32> = self.merged.iter().copied().collect();
         ids.sort();
         let new = ids.iter().copied().filter(|id| !self.checkpointed.contains(id)).collect();
+        let mut skipped: Vec<u32> = self.skipped.iter().copied().collect();
+        skipped.sort();
         Some(Snapshot {
             job: self.id.clone(),
             dir: self.dir(data),
             ids,
+            skipped,
             new,
             accum: self.accum.clone(),
             finished,
         })
     }
 
+    /// Every chunk merged or skipped.
+    fn complete(&self) -> bool {
+        self.merged.len() + self.skipped.len() == self.plan.len()
+    }
+
+    /// After chunk `chunk` of a noise-target job is merged: estimate its tile's error from the
+    /// chunk's own samples (its pass alone, so the decision depends only on deterministic
+    /// partials, never on arrival order), then queue the tile's next pass or skip the rest.
+    /// The pass's estimated relative MSE falls as 1/passes: after pass p it is est / (p + 1).
+    fn follow_up(&mut self, chunk: u32, acc: &Accum) {
+        let Some(target) = self.spec.settings.target_rel_error else { return };
+        let n = self.spec.settings.tiles();
+        let (tile, pass) = (chunk % n, chunk / n);
+        let r = self.plan[chunk as usize].region;
+        let mut own = Accum::new(r.x0, r.y0, r.x1 - r.x0, r.y1 - r.y0);
+        own.merge(acc);
+        let est = own.estimated_rel_mse() / (pass + 1) as f64;
+        self.tile_est[tile as usize] = est;
+        let next = chunk + n;
+        if next as usize >= self.plan.len() {
+            return;
+        }
+        if est <= target * target {
+            for c in (next..self.plan.len() as u32).step_by(n as usize) {
+                self.skipped.insert(c);
+                self.chunks[c as usize] = ChunkState::Skipped;
+            }
+        } else {
+            self.queue.push_back(next);
+        }
+    }
+
+    /// The samples still to render: for noise-target jobs, each unfinished tile's passes
+    /// predicted from its latest estimate (all its remaining passes while it has none).
+    fn samples_left(&self) -> u64 {
+        let s = &self.spec.settings;
+        let Some(target) = s.target_rel_error else { return self.samples_total() - self.samples_done };
+        let n = s.tiles();
+        let passes = (self.plan.len() as u32).div_ceil(n);
+        let mut left = 0;
+        for tile in 0..n {
+            let todo: Vec<u32> = (tile..self.plan.len() as u32)
+                .step_by(n as usize)
+                .filter(|c| !self.merged.contains(c) && !self.skipped.contains(c))
+                .collect();
+            let Some(&first) = todo.first() else { continue };
+            let done = first / n;
+            let est = self.tile_est[tile as usize];
+            let need = if est.is_finite() {
+                ((est * done as f64 / (target * target)).ceil() as u32).clamp(done + 1, passes)
+            } else {
+                passes
+            };
+            left += todo
+                .iter()
+                .take((need - done) as usize)
+                .map(|&c| self.plan[c as usize].region.samples())
+                .sum::<u64>();
+        }
+        left
+    }
+
     fn counts(&self) -> (u64, u64, u64) {
         let (mut done, mut leased, mut pending) = (0, 0, 0);
         for c in &self.chunks {
             match c {
-                ChunkState::Done => done += 1,
+                ChunkState::Done | ChunkState::Skipped => done += 1,
                 ChunkState::Leased { .. } => leased += 1,
                 ChunkState::Pending => pending += 1,
             }
@@ -325,8 +400,22 @@ impl Coordinator {
         if s.tile_size == 0 || s.spp_per_chunk == 0 {
             return Err(CoordError::BadRequest("tile_size and spp_per_chunk must be positive".into()));
         }
+        if let Some(t) = s.target_rel_error {
+            if !(t.is_finite() && t > 0.0) {
+                return Err(CoordError::BadRequest(format!("target_rel_error must be positive, got {t}")));
+            }
+            if s.spp_per_chunk < 2 {
+                return Err(CoordError::BadRequest(
+                    "a noise-target job needs spp_per_chunk >= 2 (error is estimated from each chunk's samples)"
+                        .into(),
+                ));
+            }
+        }
         let plan = chunk_plan(s);
         let n = plan.len();
+        // Noise-target jobs hand out a tile's next pass only once its last one is judged.
+        let first = if s.target_rel_error.is_some() { (s.tiles() as usize).min(n) } else { n };
+        let tiles = s.tiles() as usize;
         Ok(Job {
             id,
             bundle_hash: spec.bundle.hash(),
@@ -336,9 +425,11 @@ impl Coordinator {
             spec,
             state,
             chunks: vec![ChunkState::Pending; n],
-            queue: (0..n as u32).collect(),
+            queue: (0..first as u32).collect(),
             plan,
             merged: HashSet::new(),
+            skipped: HashSet::new(),
+            tile_est: vec![f64::NAN; tiles],
             checkpointed: HashSet::new(),
             since_checkpoint: 0,
             checkpointing: false,
@@ -364,10 +455,11 @@ impl Coordinator {
         let mut job = self.new_job(id, spec, state, created)?;
         let dir = job.dir(&self.data);
         if let Ok(bytes) = std::fs::read(dir.join("checkpoint")) {
-            let (ids, acc) = decode_checkpoint(&bytes, self.max_partial.max(1 << 30))
+            let (ids, skipped, acc) = decode_checkpoint(&bytes, self.max_partial.max(1 << 30))
                 .map_err(|e| CoordError::Internal(format!("job {}: checkpoint: {e}", job.id)))?;
             job.accum = acc;
             job.merged = ids.iter().copied().collect();
+            job.skipped = skipped.into_iter().collect();
             job.checkpointed = job.merged.clone();
         }
         if let Ok(entries) = std::fs::read_dir(dir.join("partials")) {
@@ -390,13 +482,28 @@ impl Coordinator {
                     .map_err(|e| CoordError::Internal(format!("job {}: stored partial {id}: {e}", job.id)))?;
                 job.accum.merge(&acc);
                 job.merged.insert(id);
+                job.follow_up(id, &acc);
             }
         }
         for &id in &job.merged {
             job.chunks[id as usize] = ChunkState::Done;
             job.samples_done += job.plan[id as usize].region.samples();
         }
-        job.queue.retain(|id| !job.merged.contains(id));
+        for &id in &job.skipped {
+            job.chunks[id as usize] = ChunkState::Skipped;
+        }
+        if job.spec.settings.target_rel_error.is_some() {
+            // Each tile's next pass, if its earlier passes are all merged and it is not skipped.
+            let n = job.spec.settings.tiles();
+            job.queue = (0..n.min(job.plan.len() as u32))
+                .filter_map(|t| {
+                    (t..job.plan.len() as u32).step_by(n as usize).find(|c| !job.merged.contains(c))
+                })
+                .filter(|c| !job.skipped.contains(c))
+                .collect();
+        } else {
+            job.queue.retain(|id| !job.merged.contains(id));
+        }
         Ok(job)
     }
 
@@ -630,6 +737,7 @@ impl Coordinator {
         j.accum.merge(acc);
         j.merged.insert(chunk);
         j.chunks[chunk as usize] = ChunkState::Done;
+        j.follow_up(chunk, acc);
         let samples = j.plan[chunk as usize].region.samples();
         j.samples_done += samples;
         j.recent.push_back((now, samples));
@@ -638,7 +746,7 @@ impl Coordinator {
         }
         j.since_checkpoint += 1;
         if !persist {
-            if j.merged.len() == j.plan.len() {
+            if j.complete() {
                 self.set_state(job, JobState::Done)?;
             }
             return Ok(None);
@@ -682,7 +790,7 @@ impl Coordinator {
             }
             _ => 0.0,
         };
-        let left = j.samples_total() - j.samples_done;
+        let left = j.samples_left();
         Ok(JobStatus {
             id: j.id.clone(),
             state: j.state,
@@ -691,8 +799,9 @@ impl Coordinator {
             chunks_done: done,
             chunks_leased: leased,
             chunks_pending: pending,
+            chunks_skipped: j.skipped.len() as u64,
             samples_done: j.samples_done,
-            samples_total: j.samples_total(),
+            samples_total: j.samples_done + left,
             samples_per_second: rate,
             eta_seconds: (rate > 0.0).then(|| left as f64 / rate),
             estimated_rel_mse: Some(j.accum.estimated_rel_mse()).filter(|e| e.is_finite()),
@@ -766,6 +875,8 @@ struct Snapshot {
     dir: PathBuf,
     /// Chunks in `accum`, sorted.
     ids: Vec<u32>,
+    /// Chunks skipped (noise-target jobs), sorted.
+    skipped: Vec<u32>,
     /// Those not in the previous checkpoint: their partial files go once this one is written.
     new: Vec<u32>,
     accum: Accum,
@@ -778,7 +889,9 @@ impl Snapshot {
     /// partials in it; for a finished job, also `result.exr`.
     fn write(&self) -> Result<(), CoordError> {
         let t = Instant::now();
-        let header = serde_json::to_vec(&self.ids).map_err(|e| CoordError::Internal(e.to_string()))?;
+        let header =
+            serde_json::to_vec(&CheckpointHeader { merged: self.ids.clone(), skipped: self.skipped.clone() })
+                .map_err(|e| CoordError::Internal(e.to_string()))?;
         let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
         bytes.extend_from_slice(&header);
         bytes.extend_from_slice(&encode_partial(&self.accum));
@@ -796,11 +909,19 @@ impl Snapshot {
     }
 }
 
-fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Accum), String> {
+/// The chunks a checkpoint holds, and those its job skips.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct CheckpointHeader {
+    merged: Vec<u32>,
+    #[serde(default)]
+    skipped: Vec<u32>,
+}
+
+fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Vec<u32>, Accum), String> {
     let n =
         u64::from_le_bytes(bytes.get(..8).ok_or("truncated")?.try_into().map_err(|_| "truncated")?) as usize;
     let header = bytes.get(8..8 + n).ok_or("truncated header")?;
-    let ids: Vec<u32> = serde_json::from_slice(header).map_err(|e| e.to_string())?;
+    let h: CheckpointHeader = serde_json::from_slice(header).map_err(|e| e.to_string())?;
     let acc = decode_partial(&bytes[8 + n..], max).map_err(|e| e.to_string())?;
-    Ok((ids, acc))
+    Ok((h.merged, h.skipped, acc))
 }

@@ -21,16 +21,20 @@ pub const API: &str = "/v1";
 
 /// The render settings of a job (DESIGN.md defaults: 1920 x 1080 at 4096 spp, 64-pixel tiles,
 /// 64 spp per chunk).
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct JobSettings {
     pub width: u32,
     pub height: u32,
+    /// Samples per pixel; with `target_rel_error`, the most any pixel gets.
     pub spp: u64,
     pub tile_size: u32,
     pub spp_per_chunk: u64,
     pub seed: u64,
     pub priority: i32,
+    /// Stop each tile once its estimated relative error (the root of its estimated relative
+    /// MSE) is at most this; `None`: render every sample.
+    pub target_rel_error: Option<f64>,
 }
 
 impl Default for JobSettings {
@@ -43,7 +47,16 @@ impl Default for JobSettings {
             spp_per_chunk: 64,
             seed: 0,
             priority: 0,
+            target_rel_error: None,
         }
+    }
+}
+
+impl JobSettings {
+    /// Tiles in one pass of the plan: chunk `id` is tile `id % n` of pass `id / n`.
+    pub fn tiles(&self) -> u32 {
+        let t = self.tile_size.max(1);
+        self.width.div_ceil(t) * self.height.div_ceil(t)
     }
 }
 
@@ -144,7 +157,7 @@ pub fn is_hash(s: &str) -> bool {
 
 /// What a client submits: a bundle (its files uploaded first) and settings. Width, height and
 /// spp of 0 take the scene's own.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobSpec {
     pub bundle: Bundle,
     #[serde(default)]
@@ -166,7 +179,7 @@ pub const MAX_LEASE_WAIT_MS: u64 = 30_000;
 
 /// A chunk leased to a worker until `deadline_ms` (milliseconds from now when granted) unless
 /// it heartbeats. Uploads and heartbeats carry the epoch; a requeued chunk gets a higher one.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Lease {
     pub job: String,
     pub chunk: ChunkSpec,
@@ -208,6 +221,9 @@ pub struct JobStatus {
     pub chunks_done: u64,
     pub chunks_leased: u64,
     pub chunks_pending: u64,
+    /// Chunks not rendered because their tile reached the target error.
+    #[serde(default)]
+    pub chunks_skipped: u64,
     pub samples_done: u64,
     pub samples_total: u64,
     pub samples_per_second: f64,
