@@ -433,3 +433,39 @@ fn lease_requests_wait_for_work() {
     assert!(submitted.elapsed() < Duration::from_secs(5), "the waiting request was not woken");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A noise-target job through the farm (HTTP, a worker process) gives `furnace render`'s bytes
+/// for the same target, and its status tells the chunks skipped and the estimated error.
+#[test]
+fn a_noise_target_job_on_the_farm_equals_furnace_render() {
+    let dir = scratch("farmtarget");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let _w = worker(&url, "w1", &dir.join("cache1"));
+    let args = ["--spp", "256", "--spp-per-chunk", "4", "--tile", "8", "--target-rel-error", "0.2"];
+    let out = Command::new(BIN)
+        .arg("submit")
+        .arg(scenes().join("small.xml"))
+        .args(["--coordinator", &url])
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let job = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    let farm = wait_done(&url, &job, Duration::from_secs(120));
+    let local = dir.join("local.exr");
+    let st = Command::new(BIN)
+        .arg("render")
+        .arg(scenes().join("small.xml"))
+        .args(args)
+        .arg("-o")
+        .arg(&local)
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(st.success());
+    assert!(farm == std::fs::read(&local).unwrap(), "noise-target farm result differs from furnace render");
+    let s = status(&url, &job);
+    assert!(s["chunks_skipped"].as_u64().unwrap() > 0, "{s}");
+    assert!(s["estimated_rel_mse"].as_f64().unwrap() <= 0.2 * 0.2, "{s}");
+    std::fs::remove_dir_all(&dir).ok();
+}
