@@ -3,10 +3,46 @@
 
 mod common;
 
+use std::path::Path;
+use std::sync::Mutex;
+use std::time::Instant;
+
 use common::*;
-use furnace_coordinator::{JobAccum, MergeOutcome};
-use furnace_proto::{chunk_plan, JobSettings};
+use furnace_coordinator::state::accept_partial;
+use furnace_coordinator::{Coordinator, JobAccum, MergeOutcome};
+use furnace_core::Scene;
+use furnace_proto::{chunk_plan, Bundle, JobSettings, JobSpec, JobState};
 use furnace_worker::render_chunk;
+
+/// A persisted coordinator on `data` that checkpoints every 256 merges, without a time limit.
+fn open_coordinator(data: &Path) -> Mutex<Coordinator> {
+    let mut c = Coordinator::open(data).unwrap();
+    c.checkpoint_interval = std::time::Duration::ZERO;
+    Mutex::new(c)
+}
+
+/// Stores small.xml's files in the coordinator and submits a job; returns its id.
+fn submit_small(coord: &Mutex<Coordinator>, scene: &Scene, settings: JobSettings) -> String {
+    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), scene).unwrap();
+    for (rel, path) in files {
+        std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[&rel])).unwrap();
+    }
+    coord.lock().unwrap().submit(JobSpec { bundle, settings }, None).unwrap().0
+}
+
+/// Leases, renders and hands in up to `limit` chunks through `accept_partial` (the path of
+/// every upload, remote or in-process); returns how many.
+fn render_leases(coord: &Mutex<Coordinator>, scene: &Scene, limit: usize) -> usize {
+    let mut n = 0;
+    while n < limit {
+        let lease = coord.lock().unwrap().lease("w", Instant::now());
+        let Some(l) = lease else { break };
+        let acc = render_chunk(scene, &l.chunk, l.settings.seed).0;
+        accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, None).unwrap();
+        n += 1;
+    }
+    n
+}
 
 #[test]
 fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
@@ -42,26 +78,10 @@ fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
 /// checkpoint. On restart the job is finished from what is on disk, with the same bytes.
 #[test]
 fn a_coordinator_restarted_mid_job_and_after_the_last_merge_finishes_the_job() {
-    use std::sync::Mutex;
-    use std::time::Instant;
-
-    use furnace_coordinator::state::accept_partial;
-    use furnace_coordinator::Coordinator;
-    use furnace_proto::{Bundle, JobSpec, JobState};
-
     let dir = scratch("coord-final");
     let data = dir.join("data");
     let scene = load("small.xml", &[]);
-    let open = || {
-        let mut c = Coordinator::open(&data).unwrap();
-        c.checkpoint_interval = std::time::Duration::ZERO;
-        Mutex::new(c)
-    };
-    let coord = open();
-    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-    for (rel, path) in files {
-        std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[&rel])).unwrap();
-    }
+    let coord = open_coordinator(&data);
     let settings = JobSettings {
         spp: 8,
         tile_size: 4,
@@ -71,19 +91,9 @@ fn a_coordinator_restarted_mid_job_and_after_the_last_merge_finishes_the_job() {
         height: 0,
         ..JobSettings::default()
     };
-    let job = coord.lock().unwrap().submit(JobSpec { bundle, settings }, None).unwrap().0;
+    let job = submit_small(&coord, &scene, settings);
     let job_dir = data.join("jobs").join(&job);
-    let run = |coord: &Mutex<Coordinator>, limit: usize| {
-        let mut n = 0;
-        while n < limit {
-            let lease = coord.lock().unwrap().lease("w", Instant::now());
-            let Some(l) = lease else { break };
-            let acc = render_chunk(&scene, &l.chunk, l.settings.seed).0;
-            accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, None).unwrap();
-            n += 1;
-        }
-        n
-    };
+    let run = |coord: &Mutex<Coordinator>, limit| render_leases(coord, &scene, limit);
     assert_eq!(run(&coord, 300), 300);
     // Two chunks leased and never returned: lost in the crash, pending after the restart.
     coord.lock().unwrap().lease("w", Instant::now()).unwrap();
@@ -91,7 +101,7 @@ fn a_coordinator_restarted_mid_job_and_after_the_last_merge_finishes_the_job() {
     assert!(job_dir.join("checkpoint").exists());
     assert_eq!(std::fs::read_dir(job_dir.join("partials")).unwrap().count(), 44);
     drop(coord);
-    let coord = open();
+    let coord = open_coordinator(&data);
     let s = coord.lock().unwrap().status(&job).unwrap();
     assert_eq!((s.chunks_done, s.chunks_leased), (300, 0));
     let rest = run(&coord, usize::MAX);
@@ -122,13 +132,6 @@ fn a_coordinator_restarted_mid_job_and_after_the_last_merge_finishes_the_job() {
 /// re-judged) gives the same bytes as the job run without interruption.
 #[test]
 fn a_noise_target_job_survives_a_restart_with_the_same_bytes() {
-    use std::sync::Mutex;
-    use std::time::Instant;
-
-    use furnace_coordinator::state::accept_partial;
-    use furnace_coordinator::Coordinator;
-    use furnace_proto::{Bundle, JobSpec, JobState};
-
     let scene = load("small.xml", &[]);
     let settings = JobSettings {
         width: 0,
@@ -140,30 +143,10 @@ fn a_noise_target_job_survives_a_restart_with_the_same_bytes() {
         priority: 0,
         target_rel_error: Some(0.15),
     };
-    let open = |data: &std::path::Path| {
-        let mut c = Coordinator::open(data).unwrap();
-        c.checkpoint_interval = std::time::Duration::ZERO;
-        Mutex::new(c)
-    };
-    let run = |coord: &Mutex<Coordinator>, limit: usize| {
-        let mut n = 0;
-        while n < limit {
-            let lease = coord.lock().unwrap().lease("w", Instant::now());
-            let Some(l) = lease else { break };
-            let acc = render_chunk(&scene, &l.chunk, l.settings.seed).0;
-            accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, None).unwrap();
-            n += 1;
-        }
-        n
-    };
-    let job_of = |data: &std::path::Path| {
-        let coord = open(data);
-        let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-        for (rel, path) in files {
-            std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[&rel])).unwrap();
-        }
-        let spec = JobSpec { bundle, settings: settings.clone() };
-        let job = coord.lock().unwrap().submit(spec, None).unwrap().0;
+    let run = |coord: &Mutex<Coordinator>, limit| render_leases(coord, &scene, limit);
+    let job_of = |data: &Path| {
+        let coord = open_coordinator(data);
+        let job = submit_small(&coord, &scene, settings.clone());
         (coord, job)
     };
     let dir = scratch("target-restart");
@@ -190,7 +173,7 @@ fn a_noise_target_job_survives_a_restart_with_the_same_bytes() {
     coord.lock().unwrap().lease("w", Instant::now());
     coord.lock().unwrap().lease("w", Instant::now());
     drop(coord);
-    let coord = open(&dir.join("b"));
+    let coord = open_coordinator(&dir.join("b"));
     let rest = run(&coord, usize::MAX);
     assert_eq!(total * 6 / 10 + rest, total, "chunks rendered differ after the restart ({passes} passes)");
     assert_eq!(coord.lock().unwrap().status(&job).unwrap().state, JobState::Done);

@@ -133,29 +133,39 @@ fn estimated_error_tracks_the_measured_error() {
     }
 }
 
-/// Texture filter ablations edit the parsed scene: bilinear (what textured.xml says) gives the
-/// very same renders as the scene itself, nearest lookups are biased (higher error at the same
-/// spp), and the mip-mapped filters run.
-#[test]
-fn texture_filter_ablations_edit_the_scene() {
-    let dir = scratch("report-tex");
+/// Runs `furnace report` on a test scene against its Mitsuba reference; returns the CSV rows.
+fn report_rows(scene: &str, max_spp: &str) -> Vec<Row> {
+    let dir = scratch(&format!("report-{scene}"));
     let o = furnace()
         .arg("report")
-        .arg(scenes().join("textured.xml"))
+        .arg(scenes().join(format!("{scene}.xml")))
         .arg("--reference")
-        .arg(scenes().join("refs/textured.exr"))
-        .args(["--max-spp", "8", "-o"])
+        .arg(scenes().join(format!("refs/{scene}.exr")))
+        .args(["--max-spp", max_spp, "-o"])
         .arg(&dir)
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let rows = read_csv(&dir.join("report.csv"));
-    let last =
-        |name: &str| rows.iter().rfind(|r| r.technique == name).unwrap_or_else(|| panic!("{name}")).rel_mse;
-    assert_eq!(last("texture filter bilinear"), last("path tracer (as the scene says)"));
-    assert!(last("texture filter nearest") > 1.5 * last("texture filter bilinear"));
-    assert!(last("texture filter trilinear").is_finite() && last("texture filter ewa").is_finite());
     std::fs::remove_dir_all(&dir).ok();
+    rows
+}
+
+/// The last (highest-spp) row of a technique.
+fn last<'a>(rows: &'a [Row], technique: &str) -> &'a Row {
+    rows.iter().rfind(|r| r.technique == technique).unwrap_or_else(|| panic!("no rows for {technique}"))
+}
+
+/// Texture filter ablations edit the parsed scene: bilinear (what textured.xml says) gives the
+/// very same renders as the scene itself, nearest lookups are biased (higher error at the same
+/// spp), and the mip-mapped filters run.
+#[test]
+fn texture_filter_ablations_edit_the_scene() {
+    let rows = report_rows("textured", "8");
+    let err = |t: &str| last(&rows, t).rel_mse;
+    assert_eq!(err("texture filter bilinear"), err("path tracer (as the scene says)"));
+    assert!(err("texture filter nearest") > 1.5 * err("texture filter bilinear"));
+    assert!(err("texture filter trilinear").is_finite() && err("texture filter ewa").is_finite());
 }
 
 /// Environment importance sampling against uniform sampling of the same map: uniform sampling
@@ -163,23 +173,12 @@ fn texture_filter_ablations_edit_the_scene() {
 /// per-pixel relative error, which fireflies do not dominate) at the same spp.
 #[test]
 fn environment_importance_sampling_beats_uniform_sampling() {
-    let dir = scratch("report-env");
-    let o = furnace()
-        .arg("report")
-        .arg(scenes().join("envmap.xml"))
-        .arg("--reference")
-        .arg(scenes().join("refs/envmap.exr"))
-        .args(["--max-spp", "4", "-o"])
-        .arg(&dir)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let rows = read_csv(&dir.join("report.csv"));
-    let last =
-        |name: &str| rows.iter().rfind(|r| r.technique == name).unwrap_or_else(|| panic!("{name}")).p90;
-    let (is, uniform) = (last("path tracer (as the scene says)"), last("environment sampled uniformly"));
+    let rows = report_rows("envmap", "4");
+    let (is, uniform) = (
+        last(&rows, "path tracer (as the scene says)").p90,
+        last(&rows, "environment sampled uniformly").p90,
+    );
     assert!(uniform > 2.0 * is, "p90 uniform {uniform} vs importance sampled {is}");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// A noise-target render (the farm in one process) stops each tile at its target: the result
