@@ -71,8 +71,43 @@ fn json_body<T: for<'de> Deserialize<'de>>(body: &Bytes, what: &str) -> Result<T
 /// Largest request body: scene files and partials.
 pub const MAX_BODY: usize = 256 << 20;
 
+/// The OpenAPI 3 description of every route below, served at `/v1/openapi.json`.
+pub const OPENAPI: &str = include_str!("openapi.json");
+
+/// Every (method, path) the router serves, in OpenAPI path syntax (`{action}` spelled out).
+/// A test holds this list, the OpenAPI document and the live router to each other.
+pub const ROUTES: &[(&str, &str)] = &[
+    ("get", "/healthz"),
+    ("get", "/readyz"),
+    ("get", "/v1/openapi.json"),
+    ("put", "/v1/files/{hash}"),
+    ("get", "/v1/files/{hash}"),
+    ("head", "/v1/files/{hash}"),
+    ("get", "/v1/bundles/{hash}"),
+    ("post", "/v1/jobs"),
+    ("get", "/v1/jobs"),
+    ("get", "/v1/jobs/{id}"),
+    ("get", "/v1/jobs/{id}/events"),
+    ("get", "/v1/jobs/{id}/preview.png"),
+    ("get", "/v1/jobs/{id}/result.exr"),
+    ("post", "/v1/jobs/{id}/cancel"),
+    ("post", "/v1/jobs/{id}/pause"),
+    ("post", "/v1/jobs/{id}/resume"),
+    ("post", "/v1/jobs/{id}/priority"),
+    ("post", "/v1/leases"),
+    ("post", "/v1/jobs/{id}/chunks/{chunk}/heartbeat"),
+    ("post", "/v1/jobs/{id}/chunks/{chunk}/fail"),
+    ("put", "/v1/jobs/{id}/chunks/{chunk}/result"),
+];
+
 pub fn router(state: AppState) -> Router {
+    // Probes answer without the token (orchestrators call them bare).
+    let probes = Router::new()
+        .route("/healthz", get(|| async { "ok" }))
+        .route("/readyz", get(readyz))
+        .with_state(state.clone());
     Router::new()
+        .route("/v1/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
         .route("/v1/files/{hash}", put(put_file).get(get_file).head(head_file))
         .route("/v1/bundles/{hash}", get(get_bundle))
         .route("/v1/jobs", post(post_job).get(list_jobs))
@@ -90,6 +125,17 @@ pub fn router(state: AppState) -> Router {
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(DefaultBodyLimit::max(MAX_BODY))
         .with_state(state)
+        .merge(probes)
+}
+
+/// Ready when the coordinator's state answers: its lock is free within a second.
+async fn readyz(State(s): State<AppState>) -> Response {
+    let coord = s.coord.clone();
+    let probe = tokio::task::spawn_blocking(move || coord.lock().map(|c| c.job_ids().len()).unwrap_or(0));
+    match tokio::time::timeout(Duration::from_secs(1), probe).await {
+        Ok(Ok(jobs)) => Json(serde_json::json!({"ready": true, "jobs": jobs})).into_response(),
+        _ => error(StatusCode::SERVICE_UNAVAILABLE, "the coordinator's state is busy"),
+    }
 }
 
 async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
