@@ -72,13 +72,7 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, rows: &[Row]) -> Resu
         .y_label_formatter(&|y| format!("{y:.0e}"))
         .draw()
         .map_err(err)?;
-    let mut names: Vec<&str> = Vec::new();
-    for r in rows {
-        if !names.contains(&r.technique.as_str()) {
-            names.push(&r.technique);
-        }
-    }
-    for (i, name) in names.iter().enumerate() {
+    for (i, name) in crate::report::technique_names(rows).iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
         let pts: Vec<(f64, f64)> = rows
             .iter()

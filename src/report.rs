@@ -232,13 +232,7 @@ pub fn log_slope(points: impl Iterator<Item = (f64, f64)>) -> f64 {
 fn summary(rows: &[Row], main: &str) {
     let Some(target) = rows.iter().rfind(|r| r.technique == main).map(|r| r.rel_mse) else { return };
     println!("\ntime to reach relMSE {target:.3e} (the first technique's last render), slope of relMSE against time:");
-    let mut names: Vec<&str> = Vec::new();
-    for r in rows {
-        if !names.contains(&r.technique.as_str()) {
-            names.push(&r.technique);
-        }
-    }
-    for name in names {
+    for name in technique_names(rows) {
         let s: Vec<&Row> = rows.iter().filter(|r| r.technique == name).collect();
         let slope = if s.len() > 1 { log_slope(s.iter().map(|r| (r.seconds, r.rel_mse))) } else { f64::NAN };
         let reach = s.windows(2).find(|w| w[1].rel_mse <= target).map(|w| {
@@ -261,6 +255,17 @@ fn summary(rows: &[Row], main: &str) {
         };
         println!("  {name:<34} slope {slope:>6.2}   {reach}");
     }
+}
+
+/// The techniques of `rows`, in order of first appearance.
+pub fn technique_names(rows: &[Row]) -> Vec<&str> {
+    let mut names: Vec<&str> = Vec::new();
+    for r in rows {
+        if !names.contains(&r.technique.as_str()) {
+            names.push(&r.technique);
+        }
+    }
+    names
 }
 
 fn csv(rows: &[Row]) -> String {

@@ -86,6 +86,9 @@ struct Job {
     skipped: HashSet<u32>,
     /// Each tile's latest error estimate (noise-target jobs; NaN until known).
     tile_est: Vec<f64>,
+    /// The whole image's estimated relative MSE and the samples it was computed at: a pass over
+    /// the full accumulation, so status polls reuse it for a second unless the job is complete.
+    est_cache: std::cell::Cell<Option<(Instant, u64, f64)>>,
     /// Chunks in the last checkpoint.
     checkpointed: HashSet<u32>,
     since_checkpoint: usize,
@@ -203,6 +206,21 @@ impl Job {
                 .sum::<u64>();
         }
         left
+    }
+
+    /// The merge's estimated relative MSE, recomputed at most once a second while the job
+    /// runs (always exact once it is complete).
+    fn estimated_rel_mse(&self) -> f64 {
+        if let Some((at, samples, e)) = self.est_cache.get() {
+            let fresh =
+                samples == self.samples_done || (at.elapsed() < Duration::from_secs(1) && !self.complete());
+            if fresh {
+                return e;
+            }
+        }
+        let e = self.accum.estimated_rel_mse();
+        self.est_cache.set(Some((Instant::now(), self.samples_done, e)));
+        e
     }
 
     fn counts(&self) -> (u64, u64, u64) {
@@ -430,6 +448,7 @@ impl Coordinator {
             merged: HashSet::new(),
             skipped: HashSet::new(),
             tile_est: vec![f64::NAN; tiles],
+            est_cache: std::cell::Cell::new(None),
             checkpointed: HashSet::new(),
             since_checkpoint: 0,
             checkpointing: false,
@@ -804,7 +823,7 @@ impl Coordinator {
             samples_total: j.samples_done + left,
             samples_per_second: rate,
             eta_seconds: (rate > 0.0).then(|| left as f64 / rate),
-            estimated_rel_mse: Some(j.accum.estimated_rel_mse()).filter(|e| e.is_finite()),
+            estimated_rel_mse: Some(j.estimated_rel_mse()).filter(|e| e.is_finite()),
             workers: j.workers.keys().cloned().collect(),
             errors: j.errors.clone(),
             plan: j.render_plan.clone(),
