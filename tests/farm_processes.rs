@@ -517,3 +517,117 @@ fn the_openapi_document_matches_the_routes() {
     assert_eq!(served_doc, OPENAPI);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The value of a Prometheus series (`name{labels}` exactly as exported), 0 when absent.
+fn series(text: &str, name: &str) -> f64 {
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .find_map(|l| l.strip_prefix(name).and_then(|rest| rest.strip_prefix(' ')))
+        .map(|v| v.trim().parse().unwrap())
+        .unwrap_or(0.0)
+}
+
+/// `/metrics`, `/v1/stats` and `/v1/workers` count what happened: a lease that expires, a
+/// reported failure, a duplicate upload, and a worker that renders the whole job.
+#[test]
+fn metrics_count_what_the_farm_did() {
+    let dir = scratch("farmmetrics");
+    let (_c, url) = coordinator(&dir.join("data"), &["--lease-seconds", "1"], 0);
+    let job = submit(&url, "small.xml", 8, 4);
+    let http = reqwest::blocking::Client::new();
+    let lease = |w: &str| -> serde_json::Value {
+        http.post(format!("{url}/v1/leases"))
+            .json(&serde_json::json!({"worker": w}))
+            .send()
+            .unwrap()
+            .json()
+            .unwrap()
+    };
+    // A ghost takes a chunk and vanishes (its lease expires), takes another and reports it failed.
+    let lost = lease("ghost");
+    let failed = lease("ghost");
+    let path = |l: &serde_json::Value, what: &str| {
+        format!("{url}/v1/jobs/{job}/chunks/{}/{what}", l["chunk"]["id"].as_u64().unwrap())
+    };
+    let r = http
+        .post(path(&failed, "fail"))
+        .json(&serde_json::json!({"epoch": failed["epoch"], "error": "GPU on fire"}))
+        .send()
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 204);
+    let ghost_seen = Instant::now();
+    std::thread::sleep(Duration::from_millis(1600));
+    let st = Command::new(BIN)
+        .args([
+            "worker",
+            "--coordinator",
+            &url,
+            "--threads",
+            "1",
+            "--name",
+            "w1",
+            "--exit-when-idle",
+            "--cache",
+        ])
+        .arg(dir.join("cache"))
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(st.success());
+    wait_done(&url, &job, Duration::from_secs(60));
+    // The ghost uploads the chunk it lost, long after someone else's copy was merged.
+    let part = furnace_proto::encode_partial(&furnace_core::Accum::new(0, 0, 4, 4));
+    let up =
+        http.put(format!("{}?epoch={}", path(&lost, "result"), lost["epoch"])).body(part).send().unwrap();
+    assert_eq!(up.status().as_u16(), 409);
+
+    // Workers silent for over a lease plus 5 s are lost: the ghost, not w1, which exited just now.
+    std::thread::sleep(Duration::from_millis(6500).saturating_sub(ghost_seen.elapsed()));
+    let s = status(&url, &job);
+    let chunks = s["chunks_total"].as_u64().unwrap() as f64;
+    let samples = s["samples_total"].as_u64().unwrap() as f64;
+    let (code, body) = get(&format!("{url}/metrics"));
+    assert_eq!(code, 200);
+    let m = String::from_utf8(body).unwrap();
+    assert_eq!(series(&m, "furnace_jobs{state=\"done\"}"), 1.0, "{m}");
+    assert_eq!(series(&m, "furnace_jobs{state=\"running\"}"), 0.0);
+    assert_eq!(series(&m, "furnace_chunks{state=\"done\"}"), chunks);
+    assert_eq!(series(&m, "furnace_pending_chunks"), 0.0);
+    assert_eq!(series(&m, "furnace_samples_rendered_total"), samples);
+    assert_eq!(series(&m, "furnace_chunk_duration_seconds_count"), chunks);
+    assert_eq!(series(&m, "furnace_merge_duration_seconds_count"), chunks);
+    assert_eq!(series(&m, "furnace_upload_duration_seconds_count"), chunks);
+    assert!(series(&m, "furnace_upload_bytes_total") > 0.0);
+    assert!(series(&m, "furnace_merged_bytes_total") >= samples.min(1.0));
+    assert_eq!(series(&m, "furnace_lease_expirations_total"), 1.0);
+    assert_eq!(series(&m, "furnace_chunk_failures_total"), 1.0);
+    assert_eq!(series(&m, "furnace_chunk_retries_total{reason=\"expired\"}"), 1.0);
+    assert_eq!(series(&m, "furnace_chunk_retries_total{reason=\"failed\"}"), 1.0);
+    assert_eq!(series(&m, "furnace_duplicate_uploads_total"), 1.0);
+    assert!(series(&m, "furnace_checkpoint_duration_seconds_count") >= 1.0);
+    let uploads = "furnace_http_request_duration_seconds_count{method=\"PUT\",route=\"/v1/jobs/{id}/chunks/{chunk}/result\",status=\"204\"}";
+    assert_eq!(series(&m, uploads), chunks, "{m}");
+    // The worker exited moments ago (idle); the ghost has been silent for over a lease.
+    assert_eq!(series(&m, "furnace_workers{state=\"idle\"}"), 1.0);
+    assert_eq!(series(&m, "furnace_workers{state=\"lost\"}"), 1.0);
+
+    let stats: serde_json::Value = serde_json::from_slice(&get(&format!("{url}/v1/stats")).1).unwrap();
+    assert_eq!(stats["pending_chunks"], 0);
+    assert_eq!(stats["jobs"]["done"], 1);
+    assert_eq!(stats["workers"], serde_json::json!({"busy": 0, "idle": 1, "lost": 1}));
+    let workers: serde_json::Value = serde_json::from_slice(&get(&format!("{url}/v1/workers")).1).unwrap();
+    let w1 = workers.as_array().unwrap().iter().find(|w| w["name"] == "w1").unwrap();
+    assert_eq!(w1["chunks_done"].as_u64().unwrap() as f64, chunks);
+    assert_eq!(w1["samples_done"].as_u64().unwrap() as f64, samples);
+    // What the OpenAPI document promises is what the coordinator sends.
+    let doc: serde_json::Value = serde_json::from_str(furnace_coordinator::api::OPENAPI).unwrap();
+    for (schema, value) in [("FarmStats", &stats), ("WorkerStatus", w1)] {
+        let mut promised: Vec<&String> =
+            doc["components"]["schemas"][schema]["properties"].as_object().unwrap().keys().collect();
+        let mut sent: Vec<&String> = value.as_object().unwrap().keys().collect();
+        promised.sort();
+        sent.sort();
+        assert_eq!(promised, sent, "{schema}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,10 +1,10 @@
 //! The HTTP API under `/v1` (axum). Every refusal is a 4xx with a JSON `{"error": ...}` body.
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, Path, RawQuery, Request, State};
+use axum::extract::{DefaultBodyLimit, MatchedPath, Path, RawQuery, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -12,6 +12,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use furnace_proto::{decode_partial, is_hash, ApiError, Heartbeat, JobSpec, LeaseRequest, MAX_LEASE_WAIT_MS};
+use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
 use serde::Deserialize;
 use tokio::sync::Notify;
 
@@ -28,7 +29,9 @@ pub struct AppState {
 }
 
 impl AppState {
+    /// Also installs the process's Prometheus recorder, once: metrics are recorded from here on.
     pub fn new(coord: Arc<Mutex<Coordinator>>, token: Option<String>) -> AppState {
+        prometheus();
         AppState { coord, token, work: Arc::new(Notify::new()) }
     }
 
@@ -77,8 +80,12 @@ pub const OPENAPI: &str = include_str!("openapi.json");
 /// Every (method, path) the router serves, in OpenAPI path syntax (`{action}` spelled out).
 /// A test holds this list, the OpenAPI document and the live router to each other.
 pub const ROUTES: &[(&str, &str)] = &[
+    ("get", "/"),
     ("get", "/healthz"),
     ("get", "/readyz"),
+    ("get", "/metrics"),
+    ("get", "/v1/stats"),
+    ("get", "/v1/workers"),
     ("get", "/v1/openapi.json"),
     ("put", "/v1/files/{hash}"),
     ("get", "/v1/files/{hash}"),
@@ -101,15 +108,26 @@ pub const ROUTES: &[(&str, &str)] = &[
 ];
 
 pub fn router(state: AppState) -> Router {
-    // Probes answer without the token (orchestrators call them bare).
-    let probes = Router::new()
+    // Probes, metrics and the dashboard's page answer without the token (orchestrators and
+    // Prometheus call them bare; the page asks for the token and sends it with its requests).
+    let open = Router::new()
+        .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], DASHBOARD) }))
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(readyz))
+        .route("/metrics", get(metrics_text))
         .with_state(state.clone());
     Router::new()
         .route("/v1/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
         .route("/v1/files/{hash}", put(put_file).get(get_file).head(head_file))
         .route("/v1/bundles/{hash}", get(get_bundle))
+        .route(
+            "/v1/stats",
+            get(|State(s): State<AppState>| async move { Json(s.lock().stats(Instant::now())) }),
+        )
+        .route(
+            "/v1/workers",
+            get(|State(s): State<AppState>| async move { Json(s.lock().workers(Instant::now())) }),
+        )
         .route("/v1/jobs", post(post_job).get(list_jobs))
         .route("/v1/jobs/{id}", get(get_job))
         .route("/v1/jobs/{id}/events", get(job_events))
@@ -125,7 +143,100 @@ pub fn router(state: AppState) -> Router {
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(DefaultBodyLimit::max(MAX_BODY))
         .with_state(state)
-        .merge(probes)
+        .merge(open)
+        .layer(middleware::from_fn(timed))
+}
+
+/// The dashboard: one page of HTML and JavaScript, no build step.
+pub const DASHBOARD: &str = include_str!("dashboard.html");
+
+/// Buckets of every `*_seconds` histogram: 1 ms to 10 minutes.
+const SECONDS_BUCKETS: [f64; 14] =
+    [0.001, 0.0025, 0.01, 0.025, 0.1, 0.25, 1.0, 2.5, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0];
+
+/// The process's Prometheus recorder, installed on first use; `None` when another recorder was
+/// installed first.
+fn prometheus() -> Option<&'static PrometheusHandle> {
+    static HANDLE: OnceLock<Option<PrometheusHandle>> = OnceLock::new();
+    HANDLE
+        .get_or_init(|| {
+            let builder = PrometheusBuilder::new()
+                .set_buckets_for_metric(Matcher::Suffix("_seconds".into()), &SECONDS_BUCKETS)
+                .ok()?;
+            match builder.install_recorder() {
+                Ok(h) => {
+                    describe_metrics();
+                    Some(h)
+                }
+                Err(e) => {
+                    tracing::warn!("no /metrics: {e}");
+                    None
+                }
+            }
+        })
+        .as_ref()
+}
+
+fn describe_metrics() {
+    use metrics::{describe_counter, describe_gauge, describe_histogram, Unit};
+    describe_gauge!("furnace_jobs", "Jobs by state");
+    describe_gauge!("furnace_chunks", "Chunks of the coordinator's jobs by state");
+    describe_gauge!("furnace_pending_chunks", "Pending chunks of queued and running jobs (work to hand out)");
+    describe_gauge!("furnace_workers", "Workers by state: busy, idle, lost");
+    describe_histogram!("furnace_chunk_duration_seconds", Unit::Seconds, "Lease to merge, per chunk");
+    describe_counter!("furnace_samples_rendered_total", "Samples merged into jobs");
+    describe_counter!("furnace_chunk_retries_total", "Chunks handed out again, by reason (failed, expired)");
+    describe_counter!("furnace_chunk_failures_total", "Chunks workers reported they could not render");
+    describe_counter!("furnace_lease_expirations_total", "Leases that expired without an upload");
+    describe_counter!("furnace_duplicate_uploads_total", "Uploads refused because their chunk was merged");
+    describe_histogram!(
+        "furnace_upload_duration_seconds",
+        Unit::Seconds,
+        "Upload handling: decode, store, merge"
+    );
+    describe_counter!("furnace_upload_bytes_total", Unit::Bytes, "Bytes of partials uploaded (compressed)");
+    describe_histogram!("furnace_merge_duration_seconds", Unit::Seconds, "Merging one partial into its job");
+    describe_counter!("furnace_merged_bytes_total", Unit::Bytes, "Bytes of accumulation merged (decoded)");
+    describe_histogram!("furnace_checkpoint_duration_seconds", Unit::Seconds, "Writing one checkpoint");
+    describe_counter!("furnace_checkpoint_bytes_total", Unit::Bytes, "Bytes of checkpoints written");
+    describe_histogram!(
+        "furnace_http_request_duration_seconds",
+        Unit::Seconds,
+        "HTTP requests by method, route and status"
+    );
+}
+
+/// Records every request's duration under its route's pattern (not its path: job ids would
+/// make a series per job). Held lease requests count their wait.
+async fn timed(req: Request, next: Next) -> Response {
+    let route = req.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string());
+    let method = req.method().as_str().to_string();
+    let t = Instant::now();
+    let resp = next.run(req).await;
+    let route = route.unwrap_or_else(|| "unmatched".into());
+    let status = resp.status().as_u16().to_string();
+    metrics::histogram!("furnace_http_request_duration_seconds", "method" => method, "route" => route, "status" => status)
+        .record(t.elapsed().as_secs_f64());
+    resp
+}
+
+/// `/metrics`: the counters and histograms recorded so far, and the farm's gauges as of now.
+async fn metrics_text(State(s): State<AppState>) -> Response {
+    let Some(handle) = prometheus() else {
+        return error(StatusCode::SERVICE_UNAVAILABLE, "metrics are not recorded in this process");
+    };
+    let stats = s.lock().stats(Instant::now());
+    for (state, n) in &stats.jobs {
+        metrics::gauge!("furnace_jobs", "state" => state.clone()).set(*n as f64);
+    }
+    for (state, n) in &stats.chunks {
+        metrics::gauge!("furnace_chunks", "state" => state.clone()).set(*n as f64);
+    }
+    for (state, n) in &stats.workers {
+        metrics::gauge!("furnace_workers", "state" => state.clone()).set(*n as f64);
+    }
+    metrics::gauge!("furnace_pending_chunks").set(stats.pending_chunks as f64);
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], handle.render()).into_response()
 }
 
 /// Ready when the coordinator's state answers: its lock is free within a second.
@@ -280,7 +391,10 @@ async fn lease(State(s): State<AppState>, body: Bytes) -> ApiResult {
         }
         tokio::select! {
             _ = woken => {}
-            _ = tokio::time::sleep_until(until) => return Ok(StatusCode::NO_CONTENT.into_response()),
+            _ = tokio::time::sleep_until(until) => {
+                s.lock().seen(&req.worker, Instant::now());
+                return Ok(StatusCode::NO_CONTENT.into_response());
+            }
         }
     }
 }
@@ -322,6 +436,8 @@ async fn upload(
         .and_then(|v| v.parse::<u64>().ok())
         .ok_or_else(|| CoordError::BadRequest("the upload needs ?epoch= of its lease".into()))?;
     let coord = s.coord.clone();
+    let t = Instant::now();
+    metrics::counter!("furnace_upload_bytes_total").increment(body.len() as u64);
     tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
         // Decode outside the lock: it is the slow part.
         let max = coord.lock().unwrap_or_else(|e| e.into_inner()).max_partial;
@@ -330,6 +446,7 @@ async fn upload(
     })
     .await
     .map_err(|e| CoordError::Internal(e.to_string()))??;
+    metrics::histogram!("furnace_upload_duration_seconds").record(t.elapsed().as_secs_f64());
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
@@ -342,8 +459,13 @@ pub async fn run(
     let s = state.clone();
     tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(500));
-        loop {
+        for n in 0u64.. {
             tick.tick().await;
+            if n % 10 == 0 {
+                if let Some(h) = prometheus() {
+                    h.run_upkeep();
+                }
+            }
             if s.lock().expire_leases(Instant::now()) > 0 {
                 s.new_work();
             }

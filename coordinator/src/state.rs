@@ -63,6 +63,8 @@ enum ChunkState {
         epoch: u64,
         worker: String,
         deadline: Instant,
+        /// When it was handed out, for the chunk duration metric.
+        since: Instant,
     },
     Done,
     /// Not rendered: its tile reached the job's target error first.
@@ -236,6 +238,19 @@ impl Job {
     }
 }
 
+/// What the coordinator remembers of a worker: it exists only in the requests it makes.
+struct WorkerSeen {
+    last_seen: Instant,
+    chunks_done: u64,
+    samples_done: u64,
+}
+
+/// A worker without leases is idle while it has been heard from within a lease duration plus
+/// this (workers ask for work every few seconds), and lost after.
+const WORKER_SLACK: Duration = Duration::from_secs(5);
+/// Workers silent for this long are forgotten.
+const FORGET_WORKER: Duration = Duration::from_secs(3600);
+
 pub struct Coordinator {
     data: PathBuf,
     /// Whether jobs, partials and results are stored in `data` (false: in memory only).
@@ -252,6 +267,7 @@ pub struct Coordinator {
     /// accumulation (about a second for 1920 x 1080 here); between them, a restart replays the
     /// stored partials.
     pub checkpoint_interval: Duration,
+    workers: BTreeMap<String, WorkerSeen>,
 }
 
 fn now_secs() -> u64 {
@@ -299,6 +315,7 @@ impl Coordinator {
             max_partial: 256 << 20,
             keep_scenes: false,
             checkpoint_interval: Duration::from_secs(10),
+            workers: BTreeMap::new(),
         };
         let rows: Vec<(String, String, String, i64)> = {
             let mut st = c.db.prepare("SELECT id, spec, state, created FROM jobs ORDER BY created, id")?;
@@ -340,6 +357,7 @@ impl Coordinator {
             max_partial: 256 << 20,
             keep_scenes: true,
             checkpoint_interval: Duration::from_secs(10),
+            workers: BTreeMap::new(),
         })
     }
 
@@ -618,6 +636,8 @@ impl Coordinator {
                         *c = ChunkState::Pending;
                         job.queue.push_front(i as u32);
                         n += 1;
+                        metrics::counter!("furnace_lease_expirations_total").increment(1);
+                        metrics::counter!("furnace_chunk_retries_total", "reason" => "expired").increment(1);
                     }
                 }
             }
@@ -628,6 +648,7 @@ impl Coordinator {
     /// Hands out the next chunk: highest priority first, then oldest job; pass by pass.
     pub fn lease(&mut self, worker: &str, now: Instant) -> Option<Lease> {
         self.expire_leases(now);
+        self.seen(worker, now);
         let mut order: Vec<(i32, u64, String)> = self
             .jobs
             .values()
@@ -644,7 +665,8 @@ impl Coordinator {
         let ms = self.lease_duration.as_millis() as u64;
         let job = self.jobs.get_mut(&id)?;
         let chunk = job.queue.pop_front()?;
-        job.chunks[chunk as usize] = ChunkState::Leased { epoch, worker: worker.to_string(), deadline };
+        job.chunks[chunk as usize] =
+            ChunkState::Leased { epoch, worker: worker.to_string(), deadline, since: now };
         job.workers.insert(worker.to_string(), now);
         if job.state == JobState::Queued {
             job.state = JobState::Running;
@@ -681,9 +703,14 @@ impl Coordinator {
     pub fn heartbeat(&mut self, job: &str, chunk: u32, epoch: u64, now: Instant) -> Result<u64, CoordError> {
         let d = self.lease_duration;
         let j = self.leased(job, chunk, epoch)?;
+        let mut who = None;
         if let ChunkState::Leased { deadline, worker, .. } = &mut j.chunks[chunk as usize] {
             *deadline = now + d;
             j.workers.insert(worker.clone(), now);
+            who = Some(worker.clone());
+        }
+        if let Some(w) = who {
+            self.seen(&w, now);
         }
         Ok(d.as_millis() as u64)
     }
@@ -703,6 +730,8 @@ impl Coordinator {
         }
         j.chunks[chunk as usize] = ChunkState::Pending;
         j.queue.push_front(chunk);
+        metrics::counter!("furnace_chunk_failures_total").increment(1);
+        metrics::counter!("furnace_chunk_retries_total", "reason" => "failed").increment(1);
         Ok(())
     }
 
@@ -750,7 +779,11 @@ impl Coordinator {
         acc: &Accum,
         now: Instant,
     ) -> Result<Option<Snapshot>, CoordError> {
-        self.leased(job, chunk, epoch)?;
+        let t0 = Instant::now();
+        let (worker, since) = match &self.leased(job, chunk, epoch)?.chunks[chunk as usize] {
+            ChunkState::Leased { worker, since, .. } => (worker.clone(), *since),
+            _ => unreachable!("checked by leased()"),
+        };
         let (data, persist, interval) = (self.data.clone(), self.persist, self.checkpoint_interval);
         let j = self.job_mut(job)?;
         j.accum.merge(acc);
@@ -758,19 +791,104 @@ impl Coordinator {
         j.chunks[chunk as usize] = ChunkState::Done;
         j.follow_up(chunk, acc);
         let samples = j.plan[chunk as usize].region.samples();
+        metrics::histogram!("furnace_chunk_duration_seconds").record(now.duration_since(since).as_secs_f64());
+        metrics::counter!("furnace_samples_rendered_total").increment(samples);
+        metrics::counter!("furnace_merged_bytes_total")
+            .increment(std::mem::size_of_val(acc.pixels.as_slice()) as u64);
         j.samples_done += samples;
         j.recent.push_back((now, samples));
         while j.recent.len() > 1 && now.duration_since(j.recent[0].0) > Duration::from_secs(30) {
             j.recent.pop_front();
         }
         j.since_checkpoint += 1;
-        if !persist {
-            if j.complete() {
-                self.set_state(job, JobState::Done)?;
-            }
-            return Ok(None);
+        let finished = j.complete();
+        let snap = if persist { j.snapshot(&data, interval) } else { None };
+        self.seen(&worker, now);
+        if let Some(w) = self.workers.get_mut(&worker) {
+            w.chunks_done += 1;
+            w.samples_done += samples;
         }
-        Ok(j.snapshot(&data, interval))
+        metrics::histogram!("furnace_merge_duration_seconds").record(t0.elapsed().as_secs_f64());
+        if !persist && finished {
+            self.set_state(job, JobState::Done)?;
+        }
+        Ok(snap)
+    }
+
+    /// Notes that `worker` was heard from.
+    pub fn seen(&mut self, worker: &str, now: Instant) {
+        match self.workers.get_mut(worker) {
+            Some(w) => w.last_seen = now,
+            None => {
+                self.workers.retain(|_, w| now.duration_since(w.last_seen) < FORGET_WORKER);
+                let w = WorkerSeen { last_seen: now, chunks_done: 0, samples_done: 0 };
+                self.workers.insert(worker.to_string(), w);
+            }
+        }
+    }
+
+    /// Every worker seen in the last hour, with its state.
+    pub fn workers(&self, now: Instant) -> Vec<furnace_proto::WorkerStatus> {
+        let mut leases: HashMap<&str, u64> = HashMap::new();
+        for j in self.jobs.values() {
+            for c in &j.chunks {
+                if let ChunkState::Leased { worker, .. } = c {
+                    *leases.entry(worker.as_str()).or_default() += 1;
+                }
+            }
+        }
+        self.workers
+            .iter()
+            .map(|(name, w)| {
+                let held = leases.get(name.as_str()).copied().unwrap_or(0);
+                let silent = now.saturating_duration_since(w.last_seen);
+                let state = if held > 0 {
+                    "busy"
+                } else if silent <= self.lease_duration + WORKER_SLACK {
+                    "idle"
+                } else {
+                    "lost"
+                };
+                furnace_proto::WorkerStatus {
+                    name: name.clone(),
+                    state: state.into(),
+                    leases: held,
+                    chunks_done: w.chunks_done,
+                    samples_done: w.samples_done,
+                    last_seen_seconds: silent.as_secs_f64(),
+                }
+            })
+            .collect()
+    }
+
+    /// Jobs, chunks and workers by state.
+    pub fn stats(&self, now: Instant) -> furnace_proto::FarmStats {
+        let mut jobs: BTreeMap<String, u64> =
+            JobState::ALL.iter().map(|s| (s.name().to_string(), 0)).collect();
+        let mut chunks: BTreeMap<String, u64> =
+            ["pending", "leased", "done", "skipped"].iter().map(|s| (s.to_string(), 0)).collect();
+        let mut pending_chunks = 0;
+        for j in self.jobs.values() {
+            *jobs.entry(j.state.name().into()).or_default() += 1;
+            for c in &j.chunks {
+                let name = match c {
+                    ChunkState::Pending => "pending",
+                    ChunkState::Leased { .. } => "leased",
+                    ChunkState::Done => "done",
+                    ChunkState::Skipped => "skipped",
+                };
+                *chunks.entry(name.into()).or_default() += 1;
+            }
+            if matches!(j.state, JobState::Queued | JobState::Running) {
+                pending_chunks += j.queue.len() as u64;
+            }
+        }
+        let mut workers: BTreeMap<String, u64> =
+            ["busy", "idle", "lost"].iter().map(|s| (s.to_string(), 0)).collect();
+        for w in self.workers(now) {
+            *workers.entry(w.state).or_default() += 1;
+        }
+        furnace_proto::FarmStats { jobs, chunks, pending_chunks, workers }
     }
 
     /// Records a written checkpoint (or its failure); a job finished meanwhile gets its final
@@ -869,7 +987,9 @@ pub fn accept_partial(
     encoded: Option<&[u8]>,
 ) -> Result<(), CoordError> {
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
-    let path = lock().check_partial(job, chunk, epoch, acc)?;
+    // Each guard is dropped before a refusal is counted: count_duplicate locks again.
+    let checked = lock().check_partial(job, chunk, epoch, acc);
+    let path = checked.inspect_err(|_| count_duplicate(coord, job, chunk))?;
     if let Some(path) = path {
         // Chunks are deterministic: a partial stored by a lease that loses the race below holds
         // the same bytes as the one merged, and a restart merges each chunk at most once.
@@ -878,7 +998,8 @@ pub fn accept_partial(
             None => write_atomic(&path, &encode_partial(acc))?,
         }
     }
-    let mut snap = lock().merge_partial(job, chunk, epoch, acc, Instant::now())?;
+    let merged = lock().merge_partial(job, chunk, epoch, acc, Instant::now());
+    let mut snap = merged.inspect_err(|_| count_duplicate(coord, job, chunk))?;
     // Checkpoints are encoded and written without the lock; leases and uploads go on meanwhile.
     while let Some(s) = snap {
         let result = s.write();
@@ -886,6 +1007,15 @@ pub fn accept_partial(
         result?;
     }
     Ok(())
+}
+
+/// Counts a refused upload of a chunk that is already merged (a lease that expired while its
+/// worker was still rendering, or a retried upload whose first attempt got through).
+fn count_duplicate(coord: &Mutex<Coordinator>, job: &str, chunk: u32) {
+    let c = coord.lock().unwrap_or_else(|e| e.into_inner());
+    if c.jobs.get(job).is_some_and(|j| matches!(j.chunks.get(chunk as usize), Some(ChunkState::Done))) {
+        metrics::counter!("furnace_duplicate_uploads_total").increment(1);
+    }
 }
 
 /// A job's merge at one moment, to be checkpointed outside the lock.
@@ -923,6 +1053,8 @@ impl Snapshot {
             let result = self.dir.join("result.exr");
             self.accum.develop().write_exr(&result).map_err(|e| CoordError::Internal(e.to_string()))?;
         }
+        metrics::histogram!("furnace_checkpoint_duration_seconds").record(t.elapsed().as_secs_f64());
+        metrics::counter!("furnace_checkpoint_bytes_total").increment(bytes.len() as u64);
         tracing::info!(job = %self.job, bytes = bytes.len(), "checkpoint written in {:.3} s", t.elapsed().as_secs_f64());
         Ok(())
     }

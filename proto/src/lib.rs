@@ -211,6 +211,22 @@ pub enum JobState {
     Cancelled,
 }
 
+impl JobState {
+    pub const ALL: [JobState; 5] =
+        [JobState::Queued, JobState::Running, JobState::Paused, JobState::Done, JobState::Cancelled];
+
+    /// The state's name on the wire.
+    pub fn name(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Paused => "paused",
+            JobState::Done => "done",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+}
+
 /// `GET /v1/jobs/{id}`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobStatus {
@@ -235,6 +251,30 @@ pub struct JobStatus {
     pub workers: Vec<String>,
     pub errors: Vec<String>,
     pub plan: String,
+}
+
+/// A worker as the coordinator sees it (`GET /v1/workers`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorkerStatus {
+    pub name: String,
+    /// `busy` (holds leases), `idle` (heard from within a lease duration plus 5 s) or `lost`
+    /// (silent for longer; its leases expire and go to others).
+    pub state: String,
+    pub leases: u64,
+    pub chunks_done: u64,
+    pub samples_done: u64,
+    pub last_seen_seconds: f64,
+}
+
+/// The whole farm in counts (`GET /v1/stats`): what `/metrics` exports and what autoscalers
+/// read. Maps are keyed by state name and list every state, zeros included.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FarmStats {
+    pub jobs: std::collections::BTreeMap<String, u64>,
+    pub chunks: std::collections::BTreeMap<String, u64>,
+    /// Pending chunks of queued and running jobs: work a worker could take now.
+    pub pending_chunks: u64,
+    pub workers: std::collections::BTreeMap<String, u64>,
 }
 
 /// The words of a pixel's sums, in channel order: R, G, B, weight, lum2 as four 32-bit words
