@@ -631,3 +631,229 @@ fn metrics_count_what_the_farm_did() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A headless Chromium driven over WebDriver (Debian's `chromium` and `chromium-driver`;
+/// `.ci/run` installs them). The session and the driver end when this is dropped.
+struct Browser {
+    http: reqwest::blocking::Client,
+    session: String,
+    _driver: Proc,
+}
+
+impl Browser {
+    fn start(profile: &Path) -> Browser {
+        let driver = std::env::var("FURNACE_CHROMEDRIVER").unwrap_or_else(|_| "chromedriver".into());
+        let chromium = std::env::var("FURNACE_CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
+        let port = free_port();
+        let child = Command::new(&driver)
+            .arg(format!("--port={port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {driver}: {e}; install Debian's chromium and chromium-driver (.ci/run does)"));
+        let base = format!("http://127.0.0.1:{port}");
+        let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(60)).build().unwrap();
+        let t = Instant::now();
+        while http.get(format!("{base}/status")).send().is_err() {
+            assert!(t.elapsed() < Duration::from_secs(20), "chromedriver did not start");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let args = [
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-dev-shm-usage",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--window-size=1400,900",
+        ];
+        let mut args: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+        args.push(format!("--user-data-dir={}", profile.display()));
+        let caps = serde_json::json!({"capabilities": {"alwaysMatch": {
+            "goog:chromeOptions": {"binary": chromium, "args": args}}}});
+        let r: serde_json::Value =
+            http.post(format!("{base}/session")).json(&caps).send().unwrap().json().unwrap();
+        let session = r["value"]["sessionId"].as_str().unwrap_or_else(|| panic!("no WebDriver session: {r}"));
+        Browser { http, session: format!("{base}/session/{session}"), _driver: Proc(child) }
+    }
+
+    fn call(&self, method: reqwest::Method, path: &str, body: serde_json::Value) -> serde_json::Value {
+        let r: serde_json::Value = self
+            .http
+            .request(method, format!("{}{path}", self.session))
+            .json(&body)
+            .send()
+            .unwrap()
+            .json()
+            .unwrap();
+        assert!(r["value"].get("error").is_none(), "WebDriver {path}: {r}");
+        r["value"].clone()
+    }
+
+    fn open(&self, url: &str) {
+        self.call(reqwest::Method::POST, "/url", serde_json::json!({ "url": url }));
+    }
+
+    fn script(&self, js: &str) -> serde_json::Value {
+        self.call(reqwest::Method::POST, "/execute/sync", serde_json::json!({"script": js, "args": []}))
+    }
+
+    /// The value of the JavaScript expression `expr`.
+    fn eval(&self, expr: &str) -> serde_json::Value {
+        self.script(&format!("return ({expr});"))
+    }
+
+    /// Evaluates `expr` until it is something other than null, undefined or false.
+    fn wait_for(&self, what: &str, expr: &str, limit: Duration) -> serde_json::Value {
+        let t = Instant::now();
+        loop {
+            let v = self.eval(expr);
+            if !v.is_null() && v != serde_json::Value::Bool(false) {
+                return v;
+            }
+            assert!(
+                t.elapsed() < limit,
+                "dashboard: {what} not seen in {limit:?}; page text: {}",
+                self.eval("document.body.innerText")
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    /// A real click (WebDriver's, at the element's position), not a script's.
+    fn click(&self, css: &str) {
+        let e = self.call(
+            reqwest::Method::POST,
+            "/element",
+            serde_json::json!({"using": "css selector", "value": css}),
+        );
+        let id = e.as_object().and_then(|o| o.values().next()).and_then(|v| v.as_str()).unwrap().to_string();
+        self.call(reqwest::Method::POST, &format!("/element/{id}/click"), serde_json::json!({}));
+    }
+
+    fn screenshot(&self, path: &Path) {
+        use base64::Engine;
+        let b64 = self.call(reqwest::Method::GET, "/screenshot", serde_json::json!({}));
+        let png = base64::engine::general_purpose::STANDARD.decode(b64.as_str().unwrap()).unwrap();
+        std::fs::write(path, png).unwrap();
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        self.http.delete(&self.session).send().ok();
+    }
+}
+
+/// The dashboard at `/`, in headless Chromium: with the token from the URL it lists a submitted
+/// job; as a worker renders it, the progress bar and the preview change; its buttons pause,
+/// resume and cancel jobs; the workers table shows the worker; the job ends at 100%.
+#[test]
+fn the_dashboard_shows_progress_and_previews_and_controls_jobs() {
+    let dir = scratch("farmdash");
+    let token = "dash-s3cret";
+    let (_c, url) = coordinator(&dir.join("data"), &["--token", token], 0);
+    let submit = |spp: &str| {
+        let out = Command::new(BIN)
+            .arg("submit")
+            .arg(scenes().join("cbox.xml"))
+            .args(["--coordinator", &url, "--token", token, "--spp", spp, "--spp-per-chunk", "4"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap().trim().to_string()
+    };
+    let job = submit("32");
+    let b = Browser::start(&dir.join("chromium"));
+    b.open(&format!("{url}/#token={token}"));
+    let row = format!("tr[data-job=\"{job}\"]");
+    let state = format!("document.querySelector('{row} td.state')?.textContent");
+    let queued = b.wait_for("the queued job", &format!("{state} === 'queued'"), Duration::from_secs(20));
+    assert_eq!(queued, true);
+    // The token went from the URL into the page's storage, out of the address bar.
+    assert_eq!(b.eval("location.hash"), "");
+
+    let progress = format!("Number(document.querySelector('{row} progress').value)");
+    // The large preview's samples and a hash of its pixels, once it shows an image.
+    let preview = "(() => { const img = document.getElementById('large');
+        if (!img.complete || !img.naturalWidth || !(Number(img.dataset.samples) > 0)) return null;
+        const c = document.createElement('canvas'); c.width = img.naturalWidth; c.height = img.naturalHeight;
+        const g = c.getContext('2d'); g.drawImage(img, 0, 0);
+        let h = 0; for (const v of g.getImageData(0, 0, c.width, c.height).data) h = (h * 31 + v) >>> 0;
+        return [Number(img.dataset.samples), h]; })()";
+    let _w = Command::new(BIN)
+        .args(["worker", "--coordinator", &url, "--token", token, "--threads", "1", "--name", "dash-worker"])
+        .arg("--cache")
+        .arg(dir.join("cache"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .map(Proc)
+        .unwrap();
+    let first = b.wait_for("a first preview", preview, Duration::from_secs(60));
+    let p1 = b.eval(&progress).as_f64().unwrap();
+    assert!(p1 > 0.0 && p1 < 1.0, "progress {p1}");
+    b.wait_for(
+        "the worker, busy",
+        "document.querySelector('tr[data-worker=\"dash-worker\"] td.state')?.textContent === 'busy'",
+        Duration::from_secs(10),
+    );
+
+    // Running, for the README's picture.
+    b.screenshot(&Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard.png"));
+    b.click(&format!("{row} button[data-action=pause]"));
+    b.wait_for("the job paused", &format!("{state} === 'paused'"), Duration::from_secs(10));
+    // Paused: the chunks in hand finish, then nothing moves.
+    std::thread::sleep(Duration::from_secs(3));
+    let held = b.eval(&progress).as_f64().unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(b.eval(&progress).as_f64().unwrap(), held, "progress moved while paused");
+    assert!(held < 1.0);
+    b.click(&format!("{row} button[data-action=resume]"));
+
+    let later = b.wait_for(
+        "a newer preview",
+        &format!("(p => p && p[0] > {} && p[1] !== {} ? p : null)({preview})", first[0], first[1]),
+        Duration::from_secs(60),
+    );
+    assert!(later[0].as_u64() > first[0].as_u64());
+    let done = b.wait_for(
+        "the job done",
+        &format!("{state} === 'done' && ({progress}) === 1"),
+        Duration::from_secs(120),
+    );
+    assert_eq!(done, true);
+    let text = b.eval("document.getElementById('farm').textContent");
+    assert!(text.as_str().unwrap().starts_with("0 chunks pending"), "{text}");
+
+    // Cancel from the page.
+    let second = submit("4096");
+    let row2 = format!("tr[data-job=\"{second}\"]");
+    b.wait_for(
+        "the second job",
+        &format!("document.querySelector('{row2}') !== null"),
+        Duration::from_secs(20),
+    );
+    b.click(&format!("{row2} button[data-action=cancel]"));
+    b.wait_for(
+        "the second job cancelled",
+        &format!("document.querySelector('{row2} td.state')?.textContent === 'cancelled'"),
+        Duration::from_secs(10),
+    );
+    assert_eq!(status_with(&url, &second, token)["state"], "cancelled");
+    assert_eq!(b.eval("document.getElementById('error').textContent"), "");
+    drop(b);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+fn status_with(url: &str, job: &str, token: &str) -> serde_json::Value {
+    let r = reqwest::blocking::Client::new()
+        .get(format!("{url}/v1/jobs/{job}"))
+        .bearer_auth(token)
+        .send()
+        .unwrap();
+    r.json().unwrap()
+}
