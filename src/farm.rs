@@ -14,10 +14,10 @@ use furnace_proto::{ApiError, Bundle, JobSettings, JobSpec, JobState, JobStatus}
 #[derive(Args)]
 pub struct ServeArgs {
     /// Folder for the database, uploaded files and job results.
-    #[arg(long)]
+    #[arg(long, env = "FURNACE_DATA_DIR")]
     pub data_dir: PathBuf,
     /// Address to listen on.
-    #[arg(long, default_value = "127.0.0.1:8640")]
+    #[arg(long, env = "FURNACE_BIND", default_value = "127.0.0.1:8640")]
     pub bind: SocketAddr,
     /// Workers to run inside this process.
     #[arg(long, default_value_t = 0)]
@@ -36,7 +36,7 @@ pub struct ServeArgs {
 #[derive(Args)]
 pub struct WorkerArgs {
     /// Coordinator URL, e.g. http://127.0.0.1:8640.
-    #[arg(long)]
+    #[arg(long, env = "FURNACE_COORDINATOR")]
     pub coordinator: String,
     /// Render threads (default: all cores).
     #[arg(long)]
@@ -47,7 +47,7 @@ pub struct WorkerArgs {
     #[arg(long, env = "FURNACE_TOKEN")]
     pub token: Option<String>,
     /// Name shown in job status (default: host and process id).
-    #[arg(long)]
+    #[arg(long, env = "FURNACE_NAME")]
     pub name: Option<String>,
     /// Scene bundle cache (default: furnace-cache in the temp folder).
     #[arg(long)]
@@ -55,6 +55,46 @@ pub struct WorkerArgs {
     /// Exit when the coordinator has no work instead of polling on.
     #[arg(long)]
     pub exit_when_idle: bool,
+    /// Keep the Unix time of the coordinator's last answer in this file (for health checks:
+    /// `furnace probe --file`).
+    #[arg(long, env = "FURNACE_HEALTH_FILE")]
+    pub health_file: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct ProbeArgs {
+    /// URL that must answer 2xx (e.g. http://127.0.0.1:8640/readyz).
+    #[arg(required_unless_present = "file", conflicts_with = "file")]
+    pub url: Option<String>,
+    /// Instead: a worker's --health-file, which must be younger than --max-age.
+    #[arg(long)]
+    pub file: Option<PathBuf>,
+    /// Seconds.
+    #[arg(long, default_value_t = 120)]
+    pub max_age: u64,
+}
+
+/// Exits 0 when the URL answers 2xx within 5 s, or the health file is fresh: for container
+/// health checks, in images without curl.
+pub fn probe(a: ProbeArgs) -> Result<()> {
+    if let Some(file) = a.file {
+        let text =
+            std::fs::read_to_string(&file).with_context(|| format!("health file {}", file.display()))?;
+        let at: u64 = text.trim().parse().with_context(|| format!("{}: not a Unix time", file.display()))?;
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.as_secs();
+        let age = now.saturating_sub(at);
+        if age > a.max_age {
+            bail!("the coordinator last answered {age} s ago (more than {} s)", a.max_age);
+        }
+        return Ok(());
+    }
+    let url = a.url.unwrap_or_default();
+    let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(5)).build()?;
+    let r = http.get(&url).send().with_context(|| format!("GET {url}"))?;
+    if !r.status().is_success() {
+        bail!("GET {url}: {}", r.status());
+    }
+    Ok(())
 }
 
 #[derive(Args)]
@@ -170,7 +210,8 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
     stop_on_signal(stop.clone());
     let host = std::fs::read_to_string("/etc/hostname").map(|s| s.trim().to_string()).unwrap_or_default();
     let cache = a.cache.unwrap_or_else(|| std::env::temp_dir().join("furnace-cache"));
-    let link = furnace_worker::HttpLink::new(&a.coordinator, a.token, cache)?;
+    let mut link = furnace_worker::HttpLink::new(&a.coordinator, a.token, cache)?;
+    link.health_file = a.health_file;
     let cfg = furnace_worker::WorkerConfig {
         link: Arc::new(link),
         threads: a.threads.unwrap_or(0),

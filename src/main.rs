@@ -39,6 +39,8 @@ enum Cmd {
     Status(farm::StatusArgs),
     /// Error against a reference versus render time, per sample count and technique.
     Report(report::ReportArgs),
+    /// Health check: a URL answers 2xx, or a worker's health file is fresh.
+    Probe(farm::ProbeArgs),
 }
 
 #[derive(Args)]
@@ -100,6 +102,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Worker(a) => farm::worker(a),
         Cmd::Submit(a) => farm::submit(a),
         Cmd::Status(a) => farm::status(a),
+        Cmd::Probe(a) => farm::probe(a),
         Cmd::Report(a) => {
             let defines = parse_defines(&a.define)?;
             report::report(a, &defines)

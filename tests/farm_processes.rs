@@ -857,3 +857,63 @@ fn status_with(url: &str, job: &str, token: &str) -> serde_json::Value {
         .unwrap();
     r.json().unwrap()
 }
+
+/// `furnace probe`, the health checks of the images: a URL that answers, or a worker's health
+/// file that is fresh.
+#[test]
+fn probes_check_a_url_or_a_workers_health_file() {
+    let dir = scratch("farmprobe");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let probe = |args: &[&str]| Command::new(BIN).arg("probe").args(args).output().unwrap();
+    assert!(probe(&[&format!("{url}/readyz")]).status.success());
+    let down = probe(&[&format!("http://127.0.0.1:{}/readyz", free_port())]);
+    assert!(!down.status.success());
+    assert!(String::from_utf8_lossy(&down.stderr).contains("/readyz"));
+    let health = dir.join("health");
+    let st = Command::new(BIN)
+        .args(["worker", "--coordinator", &url, "--exit-when-idle", "--health-file"])
+        .arg(&health)
+        .arg("--cache")
+        .arg(dir.join("cache"))
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let f = health.to_str().unwrap();
+    assert!(probe(&["--file", f]).status.success());
+    std::thread::sleep(Duration::from_millis(2100));
+    let stale = probe(&["--file", f, "--max-age", "1"]);
+    assert!(!stale.status.success());
+    assert!(String::from_utf8_lossy(&stale.stderr).contains("last answered"), "{stale:?}");
+    assert!(!probe(&["--file", dir.join("none").to_str().unwrap()]).status.success());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The Dockerfile, Compose files, Grafana dashboard and Kubernetes manifests: valid against
+/// the Kubernetes schemas, consistent with each other, using only flags and variables the
+/// binary reads and metrics the coordinator exports (deploy/check.py, in the venv `.ci/run`
+/// makes from deploy/requirements.txt).
+#[test]
+fn deploy_files_validate_and_agree_with_the_binary() {
+    let dir = scratch("farmdeploy");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    get(&format!("{url}/v1/jobs"));
+    let (code, metrics) = get(&format!("{url}/metrics"));
+    assert_eq!(code, 200);
+    let scrape = dir.join("metrics.txt");
+    std::fs::write(&scrape, metrics).unwrap();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let python = std::env::var("FURNACE_PYTHON")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|_| root.join("target/ci-venv/bin/python"));
+    let out = Command::new(&python)
+        .arg(root.join("deploy/check.py"))
+        .args(["--furnace", BIN, "--metrics"])
+        .arg(&scrape)
+        .output()
+        .unwrap_or_else(|e| panic!("{}: {e}; run .ci/run, which makes that venv", python.display()));
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "deploy/check.py:\n{text}");
+    assert!(text.starts_with("ok: "), "{text}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -204,6 +204,30 @@ fn describe_metrics() {
         Unit::Seconds,
         "HTTP requests by method, route and status"
     );
+    // Every series exists from the start, at zero, so that rates and alerts see it before the
+    // first event.
+    for name in [
+        "furnace_samples_rendered_total",
+        "furnace_chunk_failures_total",
+        "furnace_lease_expirations_total",
+        "furnace_duplicate_uploads_total",
+        "furnace_upload_bytes_total",
+        "furnace_merged_bytes_total",
+        "furnace_checkpoint_bytes_total",
+    ] {
+        metrics::counter!(name).increment(0);
+    }
+    for reason in ["failed", "expired"] {
+        metrics::counter!("furnace_chunk_retries_total", "reason" => reason).increment(0);
+    }
+    for name in [
+        "furnace_chunk_duration_seconds",
+        "furnace_upload_duration_seconds",
+        "furnace_merge_duration_seconds",
+        "furnace_checkpoint_duration_seconds",
+    ] {
+        let _ = metrics::histogram!(name);
+    }
 }
 
 /// Records every request's duration under its route's pattern (not its path: job ids would

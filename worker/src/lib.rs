@@ -243,6 +243,10 @@ pub struct HttpLink {
     scenes: Mutex<HashMap<String, Arc<Scene>>>,
     /// How long a lease request may wait at the coordinator for work.
     pub wait: Duration,
+    /// A file that holds the Unix time of the last answer from the coordinator (rewritten at
+    /// most every 5 s), for container health checks (`furnace probe --file`).
+    pub health_file: Option<PathBuf>,
+    health_written: Mutex<Option<std::time::Instant>>,
 }
 
 impl HttpLink {
@@ -256,7 +260,31 @@ impl HttpLink {
             .map_err(|err| WorkerError::Cache { path: cache.display().to_string(), err })?;
         let base = base.trim_end_matches('/').to_string();
         let scenes = Mutex::new(HashMap::new());
-        Ok(HttpLink { base, token, http, cache, scenes, wait: Duration::from_secs(2) })
+        let health_written = Mutex::new(None);
+        Ok(HttpLink {
+            base,
+            token,
+            http,
+            cache,
+            scenes,
+            wait: Duration::from_secs(2),
+            health_file: None,
+            health_written,
+        })
+    }
+
+    /// Notes an answer from the coordinator in the health file.
+    fn answered(&self) {
+        let Some(path) = &self.health_file else { return };
+        let mut last = self.health_written.lock().unwrap_or_else(|e| e.into_inner());
+        if last.is_some_and(|t| t.elapsed() < Duration::from_secs(5)) {
+            return;
+        }
+        *last = Some(std::time::Instant::now());
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+        if let Err(e) = write_file(path, now.as_secs().to_string().as_bytes()) {
+            tracing::warn!("health file {}: {e}", path.display());
+        }
     }
 
     fn url(&self, path: &str) -> String {
@@ -320,8 +348,14 @@ impl Link for HttpLink {
             .send()
             .map_err(|e| e.to_string())?;
         match r.status() {
-            StatusCode::OK => r.json().map(Some).map_err(|e| e.to_string()),
-            StatusCode::NO_CONTENT => Ok(None),
+            StatusCode::OK => {
+                self.answered();
+                r.json().map(Some).map_err(|e| e.to_string())
+            }
+            StatusCode::NO_CONTENT => {
+                self.answered();
+                Ok(None)
+            }
             _ => Err(error_text(r)),
         }
     }
