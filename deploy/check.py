@@ -165,6 +165,20 @@ def check_kubernetes(furnace):
             if check(hpa, "no HPA"):
                 ref = hpa["spec"]["scaleTargetRef"]
                 check((ref["kind"], ref["name"]) == ("Deployment", dep["metadata"]["name"]), "the HPA scales something else")
+    # The batch alternative: an Indexed Job of workers that exit when the work is done.
+    (job,) = yaml.safe_load_all(open(os.path.join(ROOT, "deploy/kubernetes/indexed-job.yaml")))
+    try:
+        kubernetes_validate.validate(job, K8S_VERSION, strict=True)
+    except kubernetes_validate.ValidationError as e:
+        check(False, f"indexed-job.yaml: {e.message} at {list(e.path)}")
+    spec = job["spec"]
+    check(spec.get("completionMode") == "Indexed", "indexed-job.yaml is not an Indexed Job")
+    (w,) = spec["template"]["spec"]["containers"]
+    check("--exit-when-idle" in w["args"], "Job workers must exit when the work is done")
+    check_args(furnace, "indexed-job.yaml", w["args"], env_of(w))
+    ref = env_of(w).get("FURNACE_TOKEN", {}).get("valueFrom", {}).get("secretKeyRef", {})
+    check(ref == {"name": "furnace-token", "key": "token"}, "indexed-job.yaml: the token is not from the Secret")
+    overlays["indexed-job"] = [job]
     return overlays
 
 
