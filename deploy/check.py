@@ -18,7 +18,6 @@ import re
 import subprocess
 import sys
 
-import kubernetes_validate
 import yaml
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -83,6 +82,8 @@ def check_args(furnace, where, args, env=()):
 
 
 def check_kubernetes(furnace):
+    import kubernetes_validate  # here, so that try-runtime.sh can use the Dockerfile parser without it
+
     overlays = {}
     for name in ["keda", "hpa"]:
         objs = kustomize(os.path.join(ROOT, "deploy/kubernetes/overlays", name))
