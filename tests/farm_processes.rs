@@ -725,13 +725,31 @@ impl Browser {
 
     /// A real click (WebDriver's, at the element's position), not a script's.
     fn click(&self, css: &str) {
+        let id = self.element(css);
+        self.call(reqwest::Method::POST, &format!("/element/{id}/click"), serde_json::json!({}));
+    }
+
+    fn element(&self, css: &str) -> String {
         let e = self.call(
             reqwest::Method::POST,
             "/element",
             serde_json::json!({"using": "css selector", "value": css}),
         );
-        let id = e.as_object().and_then(|o| o.values().next()).and_then(|v| v.as_str()).unwrap().to_string();
-        self.call(reqwest::Method::POST, &format!("/element/{id}/click"), serde_json::json!({}));
+        e.as_object().and_then(|o| o.values().next()).and_then(|v| v.as_str()).unwrap().to_string()
+    }
+
+    /// Types `text` into an input, after clearing it; for a file input, `text` is the files'
+    /// paths, one per line (and the input is not cleared).
+    fn type_into(&self, css: &str, text: &str) {
+        let id = self.element(css);
+        if !text.contains('/') {
+            self.call(reqwest::Method::POST, &format!("/element/{id}/clear"), serde_json::json!({}));
+        }
+        self.call(
+            reqwest::Method::POST,
+            &format!("/element/{id}/value"),
+            serde_json::json!({ "text": text }),
+        );
     }
 
     fn screenshot(&self, path: &Path) {
@@ -750,7 +768,8 @@ impl Drop for Browser {
 
 /// The dashboard at `/`, in headless Chromium: with the token from the URL it lists a submitted
 /// job; as a worker renders it, the progress bar and the preview change; its buttons pause,
-/// resume and cancel jobs; the workers table shows the worker; the job ends at 100%.
+/// resume and cancel jobs; the workers table shows the worker; the job ends at 100%. A scene
+/// and its texture submitted through the page's form render to furnace render's bytes.
 #[test]
 fn the_dashboard_shows_progress_and_previews_and_controls_jobs() {
     let dir = scratch("farmdash");
@@ -828,6 +847,42 @@ fn the_dashboard_shows_progress_and_previews_and_controls_jobs() {
     assert_eq!(done, true);
     let text = b.eval("document.getElementById('farm').textContent");
     assert!(text.as_str().unwrap().starts_with("0 chunks pending"), "{text}");
+
+    // The page's BLAKE3, which names the files it uploads, agrees with the blake3 crate across
+    // block, chunk and tree boundaries.
+    for n in [0usize, 1, 63, 64, 65, 1023, 1024, 1025, 2048, 2049, 3072, 4097, 100_000] {
+        let bytes: Vec<u8> = (0..n).map(|i| (i % 251) as u8).collect();
+        let js = b.eval(&format!("blake3Hex(new Uint8Array({n}).map((_, i) => i % 251))"));
+        assert_eq!(js, blake3::hash(&bytes).to_hex().as_str(), "{n} bytes");
+    }
+    // Submit from the page: the scene and its texture (which it reads from assets/), 16 spp.
+    let files = [scenes().join("textured.xml"), scenes().join("assets/checker.png")];
+    let paths: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
+    b.type_into("#scene-files", &paths.join("\n"));
+    b.type_into("#spp", "16");
+    b.type_into("#chunk-spp", "8");
+    b.click("#submit-button");
+    let id = b.wait_for(
+        "the page's submission",
+        "document.getElementById('submit-status').dataset.job",
+        Duration::from_secs(60),
+    );
+    let id = id.as_str().unwrap().to_string();
+    let row3 = format!("tr[data-job=\"{id}\"]");
+    b.wait_for(
+        "the submitted job done",
+        &format!("document.querySelector('{row3} td.state')?.textContent === 'done'"),
+        Duration::from_secs(120),
+    );
+    assert_eq!(status_with(&url, &id, token)["settings"]["spp"], 16);
+    let r = reqwest::blocking::Client::new()
+        .get(format!("{url}/v1/jobs/{id}/result.exr"))
+        .bearer_auth(token)
+        .send()
+        .unwrap();
+    let bytes = r.bytes().unwrap();
+    let local = local_render(&dir, "textured.xml", 16);
+    assert!(bytes.as_ref() == local.as_slice(), "the page's job differs from furnace render");
 
     // Cancel from the page.
     let second = submit("4096");
