@@ -233,9 +233,7 @@ def metric_names(text):
     names = set()
     for line in text.splitlines():
         if line and not line.startswith("#"):
-            name = re.match(r"[a-zA-Z_:][a-zA-Z0-9_:]*", line).group(0)
-            names.add(re.sub(r"_(bucket|sum|count)$", "", name) if name.endswith(("_bucket", "_sum", "_count")) else name)
-            names.add(name)
+            names.add(re.match(r"[a-zA-Z_:][a-zA-Z0-9_:]*", line).group(0))
     return names
 
 
@@ -250,7 +248,6 @@ def check_compose(furnace, stages, metrics_text):
         check(b["target"] in stages, f"compose: {name} builds target {b['target']}, not in the Dockerfile")
         check(os.path.exists(os.path.join(base, b["context"], b["dockerfile"])), f"compose: {name}'s Dockerfile is missing")
         check("FURNACE_TOKEN" in s[name]["environment"], f"compose: {name} has no token")
-    data = resolved(stages, "coordinator", "ENV")
     data_dir = re.search(r"FURNACE_DATA_DIR=(\S+)", " ".join(r for o, r in stages["coordinator"]["ops"] if o == "ENV")).group(1)
     vols = [v.split(":") for v in s["coordinator"].get("volumes", [])]
     check(any(v[0] in c.get("volumes", {}) and v[1] == data_dir for v in vols), "compose: the data dir is not on a named volume")

@@ -598,7 +598,7 @@ fn metrics_count_what_the_farm_did() {
     assert_eq!(series(&m, "furnace_merge_duration_seconds_count"), chunks);
     assert_eq!(series(&m, "furnace_upload_duration_seconds_count"), chunks);
     assert!(series(&m, "furnace_upload_bytes_total") > 0.0);
-    assert!(series(&m, "furnace_merged_bytes_total") >= samples.min(1.0));
+    assert!(series(&m, "furnace_merged_bytes_total") > 0.0);
     assert_eq!(series(&m, "furnace_lease_expirations_total"), 1.0);
     assert_eq!(series(&m, "furnace_chunk_failures_total"), 1.0);
     assert_eq!(series(&m, "furnace_chunk_retries_total{reason=\"expired\"}"), 1.0);

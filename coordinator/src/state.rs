@@ -703,15 +703,13 @@ impl Coordinator {
     pub fn heartbeat(&mut self, job: &str, chunk: u32, epoch: u64, now: Instant) -> Result<u64, CoordError> {
         let d = self.lease_duration;
         let j = self.leased(job, chunk, epoch)?;
-        let mut who = None;
-        if let ChunkState::Leased { deadline, worker, .. } = &mut j.chunks[chunk as usize] {
-            *deadline = now + d;
-            j.workers.insert(worker.clone(), now);
-            who = Some(worker.clone());
-        }
-        if let Some(w) = who {
-            self.seen(&w, now);
-        }
+        let ChunkState::Leased { deadline, worker, .. } = &mut j.chunks[chunk as usize] else {
+            unreachable!("checked by leased()")
+        };
+        *deadline = now + d;
+        let worker = worker.clone();
+        j.workers.insert(worker.clone(), now);
+        self.seen(&worker, now);
         Ok(d.as_millis() as u64)
     }
 

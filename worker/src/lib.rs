@@ -363,6 +363,11 @@ impl Link for HttpLink {
     fn heartbeat(&self, l: &Lease) -> bool {
         let url = self.url(&format!("/v1/jobs/{}/chunks/{}/heartbeat", l.job, l.chunk.id));
         let r = self.auth(self.http.post(url)).json(&furnace_proto::Heartbeat { epoch: l.epoch }).send();
+        if matches!(&r, Ok(resp) if resp.status().is_success()) {
+            // A worker busy with long chunks asks for no lease for minutes: its heartbeats
+            // keep its health file fresh.
+            self.answered();
+        }
         !matches!(r, Ok(resp) if resp.status() == StatusCode::CONFLICT)
     }
 
@@ -380,7 +385,10 @@ impl Link for HttpLink {
     fn upload(&self, l: &Lease, acc: &Accum, _stats: &Stats) -> Uploaded {
         let url = self.url(&format!("/v1/jobs/{}/chunks/{}/result?epoch={}", l.job, l.chunk.id, l.epoch));
         match self.auth(self.http.put(&url)).body(encode_partial(acc)).send() {
-            Ok(r) if r.status().is_success() => Uploaded::Accepted,
+            Ok(r) if r.status().is_success() => {
+                self.answered();
+                Uploaded::Accepted
+            }
             Ok(r) if r.status().is_client_error() => Uploaded::Refused(error_text(r)),
             Ok(r) => Uploaded::Retry(r.status().to_string()),
             Err(e) => Uploaded::Retry(e.to_string()),
