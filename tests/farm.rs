@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use common::*;
 use furnace_coordinator::state::accept_partial;
-use furnace_coordinator::{Coordinator, JobAccum, MergeOutcome};
+use furnace_coordinator::{CoordError, Coordinator};
 use furnace_core::Scene;
 use furnace_proto::{chunk_plan, Bundle, JobSettings, JobSpec, JobState};
 use furnace_worker::render_chunk;
@@ -44,9 +44,12 @@ fn render_leases(coord: &Mutex<Coordinator>, scene: &Scene, limit: usize) -> usi
     n
 }
 
+/// The coordinator's merge: every chunk leased at once, rendered, handed in in reverse order
+/// with every third one delivered twice (the second refused as already merged, changing
+/// nothing), gives exactly the single-machine render.
 #[test]
 fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
-    let scene = load("small.xml", &[]);
+    let scene = std::sync::Arc::new(load("small.xml", &[]));
     let settings = JobSettings {
         width: scene.film.crop_width,
         height: scene.film.crop_height,
@@ -57,19 +60,25 @@ fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
         priority: 0,
         target_rel_error: None,
     };
-    let plan = chunk_plan(&settings);
-    let partials: Vec<_> = plan.iter().map(|c| render_chunk(&scene, c, settings.seed).0).collect();
-    let mut job = JobAccum::new(settings.width, settings.height);
-    // Reverse order, every third chunk delivered twice.
-    for (k, (c, p)) in plan.iter().zip(&partials).enumerate().rev() {
-        assert_eq!(job.merge(c, p), MergeOutcome::Merged);
+    let coord = Mutex::new(Coordinator::ephemeral().unwrap());
+    let job = coord.lock().unwrap().submit_scene(scene.clone(), settings.clone()).unwrap();
+    let mut leases = Vec::new();
+    while let Some(l) = coord.lock().unwrap().lease("w", Instant::now()) {
+        leases.push(l);
+    }
+    assert_eq!(leases.len(), chunk_plan(&settings).len());
+    for (k, l) in leases.iter().enumerate().rev() {
+        let acc = render_chunk(&scene, &l.chunk, l.settings.seed).0;
+        accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None).unwrap();
         if k % 3 == 0 {
-            assert_eq!(job.merge(c, p), MergeOutcome::Duplicate);
+            let again = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None);
+            assert!(matches!(again, Err(CoordError::Conflict(_))), "{again:?}");
         }
     }
-    assert_eq!(job.chunks_merged(), plan.len());
-    let local = render(&scene, settings.spp, settings.seed).0;
-    assert!(job.accum == local, "farm merge differs from the local render");
+    let c = coord.lock().unwrap();
+    assert_eq!(c.status(&job).unwrap().state, JobState::Done);
+    let local = render(&scene, settings.spp, settings.seed).0.develop();
+    assert!(c.image(&job).unwrap().data == local.data, "farm merge differs from the local render");
 }
 
 /// Every chunk through `accept_partial` (the path of every upload, remote or in-process), with
