@@ -376,47 +376,33 @@ impl Curves {
         }
         let reach = seg.r0.max(seg.r1);
         let rel = |p: Vec3| x - (p.as_dvec3() - origin);
-        // Backwards while joined; at the curve's start, a joint sphere poking out of the open
-        // end is cut off by the end plane.
-        let (mut j, mut dist) = (i, 0.0f32);
-        loop {
-            let s = &self.segments[j];
-            if j != i {
-                if dist > reach + s.r0.max(s.r1) {
+        // Backwards, then forwards, while joined. Each step's own joint sphere is the one on
+        // the walk's side (p0 backwards, p1 forwards); at the curve's end, a joint sphere poking
+        // out of the open end is cut off by the end plane.
+        for forward in [false, true] {
+            let (mut j, mut dist) = (i, 0.0f32);
+            loop {
+                let s = &self.segments[j];
+                let (joint, r, ends) =
+                    if forward { (s.p1, s.r1, !self.joined_to_next(j)) } else { (s.p0, s.r0, s.u0 == 0.0) };
+                if j != i {
+                    if dist > reach + s.r0.max(s.r1) {
+                        break;
+                    }
+                    if s.inside_frustum(origin, x) || (!ends && ball(joint, r)) {
+                        return true;
+                    }
+                    dist += (s.p1 - s.p0).length();
+                }
+                if ends {
+                    let outward = rel(joint).dot((s.p1 - s.p0).as_dvec3());
+                    if piece == Piece::Joint && (if forward { outward > 0.0 } else { outward < 0.0 }) {
+                        return true;
+                    }
                     break;
                 }
-                if s.inside_frustum(origin, x) || (s.u0 > 0.0 && ball(s.p0, s.r0)) {
-                    return true;
-                }
-                dist += (s.p1 - s.p0).length();
+                j = if forward { j + 1 } else { j - 1 };
             }
-            if s.u0 == 0.0 {
-                if piece == Piece::Joint && rel(s.p0).dot((s.p1 - s.p0).as_dvec3()) < 0.0 {
-                    return true;
-                }
-                break;
-            }
-            j -= 1;
-        }
-        let (mut j, mut dist) = (i, 0.0f32);
-        loop {
-            let s = &self.segments[j];
-            if j != i {
-                if dist > reach + s.r0.max(s.r1) {
-                    break;
-                }
-                if s.inside_frustum(origin, x) || (self.joined_to_next(j) && ball(s.p1, s.r1)) {
-                    return true;
-                }
-                dist += (s.p1 - s.p0).length();
-            }
-            if !self.joined_to_next(j) {
-                if piece == Piece::Joint && rel(s.p1).dot((s.p1 - s.p0).as_dvec3()) > 0.0 {
-                    return true;
-                }
-                break;
-            }
-            j += 1;
         }
         false
     }
