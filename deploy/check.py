@@ -211,6 +211,11 @@ def resolved(stages, name, op):
     return None
 
 
+def stage_env(stages, name):
+    """The FURNACE_* variables a stage's own ENV sets."""
+    return dict(re.findall(r"(FURNACE_[A-Z_]+)=(\S+)", " ".join(r for o, r in stages[name]["ops"] if o == "ENV")))
+
+
 def check_docker(furnace):
     stages = dockerfile_stages()
     for target in ["coordinator", "worker"]:
@@ -223,7 +228,7 @@ def check_docker(furnace):
             cmd = json.loads(hc[hc.index("CMD") + 3:])
             check(cmd[0] == "furnace", f"{target}: the health check does not run furnace")
             check_args(furnace, f"{target} HEALTHCHECK", cmd[1:])
-        env = dict(re.findall(r"(FURNACE_[A-Z_]+)=(\S+)", " ".join(r for o, r in stages[target]["ops"] if o == "ENV")))
+        env = stage_env(stages, target)
         check_args(furnace, f"{target} CMD", json.loads(resolved(stages, target, "CMD")), env)
     check(json.loads(resolved(stages, "coordinator", "ENTRYPOINT")) == ["furnace"], "ENTRYPOINT is not furnace")
     return stages
@@ -248,7 +253,7 @@ def check_compose(furnace, stages, metrics_text):
         check(b["target"] in stages, f"compose: {name} builds target {b['target']}, not in the Dockerfile")
         check(os.path.exists(os.path.join(base, b["context"], b["dockerfile"])), f"compose: {name}'s Dockerfile is missing")
         check("FURNACE_TOKEN" in s[name]["environment"], f"compose: {name} has no token")
-    data_dir = re.search(r"FURNACE_DATA_DIR=(\S+)", " ".join(r for o, r in stages["coordinator"]["ops"] if o == "ENV")).group(1)
+    data_dir = stage_env(stages, "coordinator")["FURNACE_DATA_DIR"]
     vols = [v.split(":") for v in s["coordinator"].get("volumes", [])]
     check(any(v[0] in c.get("volumes", {}) and v[1] == data_dir for v in vols), "compose: the data dir is not on a named volume")
     w = s["worker"]

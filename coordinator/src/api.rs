@@ -177,56 +177,54 @@ fn prometheus() -> Option<&'static PrometheusHandle> {
         .as_ref()
 }
 
+/// Counters and histograms without labels: (name, unit, help). Described once, and registered
+/// at zero at start, so that rates and alerts see every series before its first event.
+const SERIES: &[(&str, Option<metrics::Unit>, &str)] = {
+    use metrics::Unit::{Bytes, Seconds};
+    &[
+        ("furnace_samples_rendered_total", None, "Samples merged into jobs"),
+        ("furnace_chunk_failures_total", None, "Chunks workers reported they could not render"),
+        ("furnace_lease_expirations_total", None, "Leases that expired without an upload"),
+        ("furnace_duplicate_uploads_total", None, "Uploads refused because their chunk was merged"),
+        ("furnace_upload_bytes_total", Some(Bytes), "Bytes of partials uploaded (compressed)"),
+        ("furnace_merged_bytes_total", Some(Bytes), "Bytes of accumulation merged (decoded)"),
+        ("furnace_checkpoint_bytes_total", Some(Bytes), "Bytes of checkpoints written"),
+        ("furnace_chunk_duration_seconds", Some(Seconds), "Lease to merge, per chunk"),
+        ("furnace_upload_duration_seconds", Some(Seconds), "Upload handling: decode, store, merge"),
+        ("furnace_merge_duration_seconds", Some(Seconds), "Merging one partial into its job"),
+        ("furnace_checkpoint_duration_seconds", Some(Seconds), "Writing one checkpoint"),
+    ]
+};
+
 fn describe_metrics() {
     use metrics::{describe_counter, describe_gauge, describe_histogram, Unit};
     describe_gauge!("furnace_jobs", "Jobs by state");
     describe_gauge!("furnace_chunks", "Chunks of the coordinator's jobs by state");
     describe_gauge!("furnace_pending_chunks", "Pending chunks of queued and running jobs (work to hand out)");
     describe_gauge!("furnace_workers", "Workers by state: busy, idle, lost");
-    describe_histogram!("furnace_chunk_duration_seconds", Unit::Seconds, "Lease to merge, per chunk");
-    describe_counter!("furnace_samples_rendered_total", "Samples merged into jobs");
     describe_counter!("furnace_chunk_retries_total", "Chunks handed out again, by reason (failed, expired)");
-    describe_counter!("furnace_chunk_failures_total", "Chunks workers reported they could not render");
-    describe_counter!("furnace_lease_expirations_total", "Leases that expired without an upload");
-    describe_counter!("furnace_duplicate_uploads_total", "Uploads refused because their chunk was merged");
-    describe_histogram!(
-        "furnace_upload_duration_seconds",
-        Unit::Seconds,
-        "Upload handling: decode, store, merge"
-    );
-    describe_counter!("furnace_upload_bytes_total", Unit::Bytes, "Bytes of partials uploaded (compressed)");
-    describe_histogram!("furnace_merge_duration_seconds", Unit::Seconds, "Merging one partial into its job");
-    describe_counter!("furnace_merged_bytes_total", Unit::Bytes, "Bytes of accumulation merged (decoded)");
-    describe_histogram!("furnace_checkpoint_duration_seconds", Unit::Seconds, "Writing one checkpoint");
-    describe_counter!("furnace_checkpoint_bytes_total", Unit::Bytes, "Bytes of checkpoints written");
+    for reason in ["failed", "expired"] {
+        metrics::counter!("furnace_chunk_retries_total", "reason" => reason).increment(0);
+    }
     describe_histogram!(
         "furnace_http_request_duration_seconds",
         Unit::Seconds,
         "HTTP requests by method, route and status"
     );
-    // Every series exists from the start, at zero, so that rates and alerts see it before the
-    // first event.
-    for name in [
-        "furnace_samples_rendered_total",
-        "furnace_chunk_failures_total",
-        "furnace_lease_expirations_total",
-        "furnace_duplicate_uploads_total",
-        "furnace_upload_bytes_total",
-        "furnace_merged_bytes_total",
-        "furnace_checkpoint_bytes_total",
-    ] {
-        metrics::counter!(name).increment(0);
-    }
-    for reason in ["failed", "expired"] {
-        metrics::counter!("furnace_chunk_retries_total", "reason" => reason).increment(0);
-    }
-    for name in [
-        "furnace_chunk_duration_seconds",
-        "furnace_upload_duration_seconds",
-        "furnace_merge_duration_seconds",
-        "furnace_checkpoint_duration_seconds",
-    ] {
-        let _ = metrics::histogram!(name);
+    for &(name, unit, help) in SERIES {
+        if name.ends_with("_seconds") {
+            match unit {
+                Some(u) => describe_histogram!(name, u, help),
+                None => describe_histogram!(name, help),
+            }
+            let _ = metrics::histogram!(name);
+        } else {
+            match unit {
+                Some(u) => describe_counter!(name, u, help),
+                None => describe_counter!(name, help),
+            }
+            metrics::counter!(name).increment(0);
+        }
     }
 }
 

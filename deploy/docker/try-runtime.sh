@@ -20,7 +20,7 @@ cp target/release/furnace "$root/usr/local/bin/furnace"
 if ! chroot "$root" id -u furnace >/dev/null 2>&1; then
     chroot "$root" sh -c "$(py "print(dict(check.dockerfile_stages()['runtime']['ops'])['RUN'])")"
 fi
-envs() { py "import re; s = check.dockerfile_stages()['$1']; print(' '.join(re.findall(r'FURNACE_[A-Z_]+=\S+', ' '.join(r for o, r in s['ops'] if o == 'ENV'))))"; }
+envs() { py "print(' '.join(f'{k}={v}' for k, v in check.stage_env(check.dockerfile_stages(), '$1').items()))"; }
 cmd() { py "import json; print(' '.join(json.loads(check.resolved(check.dockerfile_stages(), '$1', 'CMD'))))"; }
 health() { py "import json; h = check.resolved(check.dockerfile_stages(), '$1', 'HEALTHCHECK'); print(' '.join(json.loads(h[h.index('CMD') + 3:])))"; }
 as_furnace=(chroot --userspec=10001:10001 "$root" env -i HOME=/var/lib/furnace PATH=/usr/local/bin:/usr/bin:/bin FURNACE_TOKEN=tok)
