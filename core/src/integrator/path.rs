@@ -13,6 +13,10 @@ use crate::math::{mis_power, Rgb};
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
 
+/// Hidden emitters a camera ray passes through at most (stacked coplanar lights would
+/// otherwise keep it in place).
+const MAX_PASSES: u32 = 64;
+
 /// Radiance arriving along `ray`. `diff`: the camera ray's differentials, when the plan asks
 /// for texture footprints (used at the first hit).
 pub fn li(
@@ -38,6 +42,7 @@ pub fn li(
     let mut prev_p = ray.o;
     let mut prev_pdf = 0.0f32;
     let mut prev_delta = true;
+    let mut passes = 0u32;
 
     loop {
         st.rays += 1;
@@ -63,6 +68,13 @@ pub fn li(
             break;
         };
         let shape = &scene.shapes[it.shape as usize];
+        // As Mitsuba 3.9: with hide_emitters, camera rays pass through emitting surfaces
+        // (whatever their BSDF) as if they were not there; passing is not a bounce.
+        if !show_emitters && shape.light.is_some() && passes < MAX_PASSES {
+            passes += 1;
+            ray = it.spawn_ray(ray.d);
+            continue;
+        }
         let wo_world = -ray.d;
         if let (Some(k), true) = (shape.light, show_emitters) {
             let light = &scene.lights[k as usize];
