@@ -76,8 +76,17 @@ struct RenderArgs {
     #[arg(long, default_value_t = 64)]
     spp_per_chunk: u64,
     /// Exposure of the PNG preview, in stops.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = finite_stops, allow_hyphen_values = true)]
     exposure: f32,
+}
+
+/// Exposure in stops: a finite number, within +-64 (2^64 overflows nothing a PNG can show).
+fn finite_stops(s: &str) -> Result<f32, String> {
+    let v: f32 = s.trim().parse().map_err(|_| format!("expected a number of stops, found '{s}'"))?;
+    if !(v.abs() <= 64.0) {
+        return Err(format!("exposure must be a finite number of stops within -64..64, found '{s}'"));
+    }
+    Ok(v)
 }
 
 fn main() {
@@ -177,10 +186,11 @@ fn render(a: RenderArgs) -> Result<()> {
         target_rel_error: a.target_rel_error,
         ..local_settings()
     };
-    let (image, stats, estimate) = render_local(Arc::new(scene), settings, threads, &|done, total| {
-        bar.set_length(total);
-        bar.set_position(done)
-    })?;
+    let (image, stats, estimate, dropped) =
+        render_local(Arc::new(scene), settings, threads, &|done, total| {
+            bar.set_length(total);
+            bar.set_position(done)
+        })?;
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
     let threads = if threads == 0 { rayon::current_num_threads() } else { threads };
@@ -202,8 +212,12 @@ fn render(a: RenderArgs) -> Result<()> {
     if let Some(e) = estimate {
         tracing::info!("estimated relative MSE (from the render's own variance): {e:.3e}");
     }
-    if stats.dropped > 0 {
-        tracing::warn!("{} samples were NaN, infinite or above 2^40 and were dropped", stats.dropped);
+    if dropped.total() > 0 {
+        tracing::warn!(
+            "{} of {} samples were dropped and never reached the image: {dropped}",
+            dropped.total(),
+            stats.samples
+        );
     }
     println!("wrote {} and {}", out.display(), png.display());
     Ok(())
@@ -211,13 +225,13 @@ fn render(a: RenderArgs) -> Result<()> {
 
 /// Renders on this machine through the farm in one process: a coordinator that stores nothing
 /// and one worker on `threads` threads (0: all cores). The bytes are the farm's. Returns the
-/// image, the render statistics and the estimated relative MSE.
+/// image, the render statistics, the estimated relative MSE and the dropped samples.
 pub fn render_local(
     scene: Arc<Scene>,
     settings: JobSettings,
     threads: usize,
     progress: &dyn Fn(u64, u64),
-) -> Result<(Image, Stats, Option<f64>)> {
+) -> Result<(Image, Stats, Option<f64>, furnace_core::Dropped)> {
     let coord = Arc::new(Mutex::new(Coordinator::ephemeral()?));
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
     let job = lock().submit_scene(scene, settings)?;
@@ -248,7 +262,7 @@ pub fn render_local(
     }
     let stats = link.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
     let image = lock().image(&job)?;
-    Ok((image, stats, status.estimated_rel_mse))
+    Ok((image, stats, status.estimated_rel_mse, status.dropped_samples))
 }
 
 /// Settings of a render on this machine: the scene's size (filled in at submission), no

@@ -177,7 +177,7 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
         while spp <= a.max_spp && spent <= a.budget {
             let t = Instant::now();
             let settings = JobSettings { spp, seed, ..crate::local_settings() };
-            let (img, _, estimated) = crate::render_local(scene.clone(), settings, threads, &|_, _| {})?;
+            let (img, _, estimated, _) = crate::render_local(scene.clone(), settings, threads, &|_, _| {})?;
             let estimated = estimated.unwrap_or(f64::NAN);
             let seconds = t.elapsed().as_secs_f64();
             spent += seconds;

@@ -101,3 +101,33 @@ fn examples_render() {
     assert!(n >= 3, "only {n} examples");
     std::fs::remove_dir_all(&out).ok();
 }
+
+/// Issue 13's first case: the shipped Cornell box with its light at radiance 2e12. Samples
+/// that see the light directly are above 2^40: they are dropped and counted, the render
+/// finishes, and the log says how many and why.
+#[test]
+fn render_with_a_blazing_light_finishes_and_reports_dropped_samples() {
+    let dir = scratch("cli-dropped");
+    let xml = std::fs::read_to_string(env!("CARGO_MANIFEST_DIR").to_string() + "/examples/cbox.xml").unwrap();
+    let hot = xml.replace("18.387, 13.9873, 6.75357", "2e12");
+    assert_ne!(hot, xml);
+    std::fs::write(dir.join("cbox.xml"), hot).unwrap();
+    let out = dir.join("hot.exr");
+    let o = furnace()
+        .args(["render", "--spp", "4", "--threads", "2", "-o"])
+        .arg(&out)
+        .arg(dir.join("cbox.xml"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("were dropped and never reached the image") && stderr.contains("above 2^40"),
+        "{stderr}"
+    );
+    assert!(Image::read_exr(&out).unwrap().data.iter().all(|p| p.is_finite()));
+    // A non-finite exposure is refused up front.
+    let o = furnace().args(["render", "--exposure", "nan"]).arg(dir.join("cbox.xml")).output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("exposure"));
+    std::fs::remove_dir_all(&dir).ok();
+}

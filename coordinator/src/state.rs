@@ -784,6 +784,9 @@ impl Coordinator {
         };
         let (data, persist, interval) = (self.data.clone(), self.persist, self.checkpoint_interval);
         let j = self.job_mut(job)?;
+        if acc.dropped.total() > 0 {
+            tracing::warn!(job, chunk, worker = %worker, "chunk dropped samples: {}", acc.dropped);
+        }
         j.accum.merge(acc);
         j.merged.insert(chunk);
         j.chunks[chunk as usize] = ChunkState::Done;
@@ -940,6 +943,7 @@ impl Coordinator {
             samples_per_second: rate,
             eta_seconds: (rate > 0.0).then(|| left as f64 / rate),
             estimated_rel_mse: Some(j.estimated_rel_mse()).filter(|e| e.is_finite()),
+            dropped_samples: j.accum.dropped,
             workers: j.workers.keys().cloned().collect(),
             errors: j.errors.clone(),
             plan: j.render_plan.clone(),

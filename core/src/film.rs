@@ -25,10 +25,64 @@ pub fn to_fixed(v: f64) -> i128 {
     (v * (FIXED_BITS as f64).exp2()).round() as i128
 }
 
-/// Whether a sample's radiance can be accumulated: finite, and within [`MAX_RADIANCE`].
+/// Why a sample was left out of the image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DropReason {
+    Nan,
+    Infinite,
+    /// Finite, but above [`MAX_RADIANCE`] in some channel.
+    TooBright,
+}
+
+/// Whether a sample's radiance can be accumulated (`None`), or why not: NaN in any channel,
+/// an infinite channel, or a channel above [`MAX_RADIANCE`].
 #[inline]
-pub fn is_valid_sample(l: Rgb) -> bool {
-    l.is_finite() && l.abs().max_element() <= MAX_RADIANCE
+pub fn drop_reason(l: Rgb) -> Option<DropReason> {
+    if l.is_finite() && l.abs().max_element() <= MAX_RADIANCE {
+        None
+    } else if l.is_nan() {
+        Some(DropReason::Nan)
+    } else if !l.is_finite() {
+        Some(DropReason::Infinite)
+    } else {
+        Some(DropReason::TooBright)
+    }
+}
+
+/// Samples left out of an accumulation, by reason. Each is still counted in its pixel's
+/// `count` (so a chunk's count covers every sample rendered) but adds nothing else; the counts
+/// travel with the partial and add up exactly when partials merge.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Dropped {
+    pub nan: u64,
+    pub infinite: u64,
+    pub too_bright: u64,
+}
+
+impl Dropped {
+    pub fn total(&self) -> u64 {
+        self.nan.saturating_add(self.infinite).saturating_add(self.too_bright)
+    }
+
+    pub fn add(&mut self, o: &Dropped) {
+        self.nan = self.nan.saturating_add(o.nan);
+        self.infinite = self.infinite.saturating_add(o.infinite);
+        self.too_bright = self.too_bright.saturating_add(o.too_bright);
+    }
+
+    pub fn count(&mut self, why: DropReason) {
+        match why {
+            DropReason::Nan => self.nan += 1,
+            DropReason::Infinite => self.infinite += 1,
+            DropReason::TooBright => self.too_bright += 1,
+        }
+    }
+}
+
+impl std::fmt::Display for Dropped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} NaN, {} infinite, {} above 2^40", self.nan, self.infinite, self.too_bright)
+    }
 }
 
 /// Mitsuba's reconstruction filters (`rfilter`).
@@ -102,7 +156,7 @@ impl PixelSum {
         }
         self.weight = self.weight.wrapping_add(o.weight);
         self.lum2 = self.lum2.wrapping_add(o.lum2);
-        self.count += o.count;
+        self.count = self.count.wrapping_add(o.count);
     }
 }
 
@@ -115,11 +169,14 @@ pub struct Accum {
     pub width: u32,
     pub height: u32,
     pub pixels: Vec<PixelSum>,
+    /// Samples generated in these pixels but left out of the sums.
+    pub dropped: Dropped,
 }
 
 impl Accum {
     pub fn new(x0: u32, y0: u32, width: u32, height: u32) -> Accum {
-        Accum { x0, y0, width, height, pixels: vec![PixelSum::default(); (width * height) as usize] }
+        let pixels = vec![PixelSum::default(); width as usize * height as usize];
+        Accum { x0, y0, width, height, pixels, dropped: Dropped::default() }
     }
 
     #[inline]
@@ -155,9 +212,20 @@ impl Accum {
         }
     }
 
+    /// Records that one sample generated in pixel (x, y) was dropped: it counts as generated,
+    /// adds nothing to the sums, and is tallied by reason.
+    #[inline]
+    pub fn count_dropped(&mut self, x: u32, y: u32, why: DropReason) {
+        if let Some(i) = self.index(x, y) {
+            self.pixels[i].count += 1;
+            self.dropped.count(why);
+        }
+    }
+
     /// Adds `other` into `self` (the overlap of the two rectangles; anything of `other` outside
-    /// `self` is dropped). Exact and commutative.
+    /// `self` is dropped; the dropped-sample tallies always add). Exact and commutative.
     pub fn merge(&mut self, other: &Accum) {
+        self.dropped.add(&other.dropped);
         for oy in 0..other.height {
             for ox in 0..other.width {
                 let (x, y) = (other.x0 + ox, other.y0 + oy);
@@ -202,7 +270,7 @@ impl Accum {
 
     /// Total samples counted.
     pub fn sample_count(&self) -> u64 {
-        self.pixels.iter().map(|p| p.count).sum()
+        self.pixels.iter().fold(0u64, |n, p| n.saturating_add(p.count))
     }
 
     /// The image: sum(weight x radiance) / sum(weight) per pixel (0 where nothing landed).

@@ -18,7 +18,7 @@ pub mod scene;
 pub mod testing;
 pub mod texture;
 
-pub use film::Accum;
+pub use film::{Accum, Dropped};
 pub use image_io::Image;
 pub use integrator::Stats;
 pub use plan::RenderPlan;

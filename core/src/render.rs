@@ -102,8 +102,8 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                 });
                 let l = path::li(scene, ray, diff.as_ref(), &mut s, &mut st);
                 st.samples += 1;
-                if !crate::film::is_valid_sample(l) {
-                    st.dropped += 1;
+                if let Some(why) = crate::film::drop_reason(l) {
+                    acc.count_dropped(x, y, why);
                     continue;
                 }
                 acc.count_sample(x, y, l);

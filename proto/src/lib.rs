@@ -248,6 +248,10 @@ pub struct JobStatus {
     /// `Accum::estimated_rel_mse`); absent before pixels have 2 samples.
     #[serde(default)]
     pub estimated_rel_mse: Option<f64>,
+    /// Samples rendered but left out of the image (NaN, infinite, radiance above 2^40), by
+    /// reason; they count in `samples_done`.
+    #[serde(default)]
+    pub dropped_samples: furnace_core::Dropped,
     pub workers: Vec<String>,
     pub errors: Vec<String>,
     pub plan: String,

@@ -5,8 +5,10 @@
 //! Channels (all 32-bit unsigned, sorted by name as EXR stores them): `R.0`..`R.3`, `G.*`,
 //! `B.*` (filter-weighted radiance sums), `W.*` (weight sums), `L2.*` (sums of squared
 //! luminance), each four words of a two's-complement 128-bit integer, least significant first;
-//! `N.0`, `N.1` (sample count, 64 bits). Custom header attributes: none; EXR carries no
-//! timestamps or host names, so equal accumulations encode to equal bytes.
+//! `N.0`, `N.1` (sample count, 64 bits; dropped samples included). One custom header
+//! attribute, `dropped` (text): the samples left out of the sums as three decimal counts,
+//! "NAN INFINITE TOO_BRIGHT" (a partial without it dropped none). EXR carries no timestamps or
+//! host names, so equal accumulations encode to equal bytes.
 
 use std::io::Cursor;
 
@@ -29,7 +31,12 @@ pub enum PartialError {
     Channels { expected: String, found: String },
     #[error("partial channel '{0}' must hold 32-bit unsigned integers")]
     ChannelType(String),
+    #[error("partial attribute 'dropped' must be three decimal counts, found '{0}'")]
+    Dropped(String),
 }
+
+/// The header attribute holding the dropped-sample tallies.
+const DROPPED: &str = "dropped";
 
 fn channel_names() -> Vec<String> {
     let mut names: Vec<String> =
@@ -50,10 +57,13 @@ pub fn encode_partial(acc: &Accum) -> Vec<u8> {
     }
     let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
         names.iter().zip(planes).map(|(n, v)| AnyChannel::new(n.as_str(), FlatSamples::U32(v))).collect();
-    let attributes = LayerAttributes {
+    let mut attributes = LayerAttributes {
         layer_position: Vec2(acc.x0 as i32, acc.y0 as i32),
         ..LayerAttributes::named("partial")
     };
+    let d = acc.dropped;
+    let tallies = format!("{} {} {}", d.nan, d.infinite, d.too_bright);
+    attributes.other.insert(Text::new_or_panic(DROPPED), AttributeValue::Text(Text::new_or_panic(tallies)));
     let layer = Layer::new(
         (acc.width as usize, acc.height as usize),
         attributes,
@@ -116,12 +126,31 @@ pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Acc
     }
     let count = size.0 * size.1;
     let mut acc = Accum::new(pos.0 as u32, pos.1 as u32, size.0 as u32, size.1 as u32);
+    if let Some(v) = layer.attributes.other.get(&Text::new_or_panic(DROPPED)) {
+        let text = match v {
+            AttributeValue::Text(t) => t.to_string(),
+            other => format!("{other:?}"),
+        };
+        let n: Option<Vec<u64>> = text.split(' ').map(|t| t.parse().ok()).collect();
+        let Some([nan, infinite, too_bright]) = n.as_deref().and_then(|n| <[u64; 3]>::try_from(n).ok())
+        else {
+            return Err(PartialError::Dropped(text));
+        };
+        acc.dropped = furnace_core::Dropped { nan, infinite, too_bright };
+    }
     for i in 0..count {
         let mut w = [0u32; WORDS];
         for (k, plane) in planes.iter().enumerate() {
             w[k] = plane[i];
         }
         acc.pixels[i] = pixel_from_words(&w);
+    }
+    if acc.dropped.total() > acc.sample_count() {
+        return Err(PartialError::Dropped(format!(
+            "{} (more than the {} samples)",
+            acc.dropped,
+            acc.sample_count()
+        )));
     }
     Ok(acc)
 }
@@ -142,6 +171,7 @@ mod tests {
                 count: u64::MAX - i as u64,
             };
         }
+        acc.dropped = furnace_core::Dropped { nan: 1, infinite: u64::MAX / 8, too_bright: 3 };
         let bytes = encode_partial(&acc);
         assert_eq!(bytes, encode_partial(&acc), "same accumulation, same bytes");
         let back = decode_partial(&bytes, 1 << 20).unwrap();

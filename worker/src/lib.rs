@@ -127,7 +127,7 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
     // Heartbeats while rendering, a third of the lease apart.
     let (tx, rx) = mpsc::channel::<()>();
     let every = Duration::from_millis((lease.deadline_ms / 3).max(50));
-    let (acc, st) = std::thread::scope(|s| {
+    let rendered = std::thread::scope(|s| {
         s.spawn(move || {
             while let Err(mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
                 if !link.heartbeat(lease) {
@@ -135,15 +135,28 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
                 }
             }
         });
-        let r = pool.install(|| render_region_parallel(&scene, &lease.chunk.region, lease.settings.seed));
+        // A panic while rendering is this chunk's failure, reported with its message; the
+        // worker lives on.
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            pool.install(|| render_region_parallel(&scene, &lease.chunk.region, lease.settings.seed))
+        }));
         drop(tx);
         r
     });
+    let (acc, st) = match rendered {
+        Ok(r) => r,
+        Err(panic) => {
+            let e = format!("render panicked: {}", furnace_core::scene::panic_message(&*panic));
+            tracing::error!(job = %lease.job, chunk = lease.chunk.id, "{e}");
+            link.fail(lease, &e);
+            return false;
+        }
+    };
     tracing::debug!(
         job = %lease.job,
         chunk = lease.chunk.id,
         samples = lease.chunk.region.samples(),
-        dropped = st.dropped,
+        dropped = acc.dropped.total(),
         "rendered in {:.2} s",
         t.elapsed().as_secs_f64()
     );

@@ -24,9 +24,6 @@ pub struct Stats {
     pub escaped_lookups: u64,
     /// Texture footprints computed from ray differentials.
     pub footprints: u64,
-    /// Samples whose radiance was NaN, infinite or above [`crate::film::MAX_RADIANCE`]:
-    /// dropped, never splatted.
-    pub dropped: u64,
 }
 
 impl Stats {
@@ -41,7 +38,6 @@ impl Stats {
         self.bsdf_samples += o.bsdf_samples;
         self.escaped_lookups += o.escaped_lookups;
         self.footprints += o.footprints;
-        self.dropped += o.dropped;
     }
 
     pub fn light_samples_of(&self, kind: LightKind) -> u64 {

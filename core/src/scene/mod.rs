@@ -84,8 +84,7 @@ pub struct Scene {
 impl Scene {
     /// Loads a scene file; `defines` override `<default>` parameters (`-D name=value`).
     pub fn load(path: &Path, defines: &[(String, String)]) -> Result<Scene, SceneError> {
-        let doc = xml::parse_file(path, defines)?;
-        build::build(&doc)
+        guarded(path, || build::build(&xml::parse_file(path, defines)?))
     }
 
     /// Loads a scene file, letting `edit` change the parsed document before it is built.
@@ -94,15 +93,16 @@ impl Scene {
         defines: &[(String, String)],
         edit: &dyn Fn(&mut xml::Doc),
     ) -> Result<Scene, SceneError> {
-        let mut doc = xml::parse_file(path, defines)?;
-        edit(&mut doc);
-        build::build(&doc)
+        guarded(path, || {
+            let mut doc = xml::parse_file(path, defines)?;
+            edit(&mut doc);
+            build::build(&doc)
+        })
     }
 
     /// Loads scene XML held in memory; relative asset paths resolve against `path`'s folder.
     pub fn load_str(text: &str, path: &Path, defines: &[(String, String)]) -> Result<Scene, SceneError> {
-        let doc = xml::parse_str(text, path, defines)?;
-        build::build(&doc)
+        guarded(path, || build::build(&xml::parse_str(text, path, defines)?))
     }
 
     #[inline]
@@ -113,6 +113,29 @@ impl Scene {
     #[inline]
     pub fn occluded(&self, ray: &Ray) -> bool {
         self.accel.occluded(&self.shapes, ray)
+    }
+}
+
+/// Runs a scene load, turning a panic (a bug: every input should get a proper error) into the
+/// load's error, so that no scene can take down a worker or the coordinator.
+fn guarded(path: &Path, load: impl FnOnce() -> Result<Scene, SceneError>) -> Result<Scene, SceneError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(load)).unwrap_or_else(|panic| {
+        Err(SceneError::file(
+            path,
+            format!(
+                "internal error while loading the scene (a bug; please report it): {}",
+                panic_message(&*panic)
+            ),
+        ))
+    })
+}
+
+/// The text of a caught panic.
+pub fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
+    match (panic.downcast_ref::<&str>(), panic.downcast_ref::<String>()) {
+        (Some(s), _) => s.to_string(),
+        (_, Some(s)) => s.clone(),
+        _ => "panic without a message".into(),
     }
 }
 
