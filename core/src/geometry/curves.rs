@@ -56,7 +56,8 @@ pub fn parse_curve_file(text: &str, min_points: usize) -> Result<Vec<Vec<(Vec3, 
     let mut cuts = vec![0usize];
     let mut at = PIECE;
     while at < bytes.len() {
-        match text[at..].find("\n\n") {
+        // Bytes, not `str` slicing: `at` may fall inside a multi-byte character.
+        match bytes[at..].windows(2).position(|w| w == b"\n\n") {
             Some(k) => {
                 let cut = at + k + 2;
                 cuts.push(cut);

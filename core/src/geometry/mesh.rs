@@ -28,6 +28,8 @@ pub enum MeshError {
     BadIndex { face: usize, index: u32, count: usize },
     #[error("vertex {0} has a non-finite coordinate")]
     NonFinite(usize),
+    #[error("vertex {index}'s {what} is {value} (it must be finite{})", if *what == "normal" { " and non-zero; face_normals=true ignores the file's normals" } else { "" })]
+    BadAttribute { index: usize, what: &'static str, value: String },
 }
 
 impl Mesh {
@@ -96,6 +98,19 @@ impl Mesh {
         let count = self.positions.len();
         if let Some(k) = self.positions.iter().position(|p| !p.is_finite()) {
             return Err(MeshError::NonFinite(k));
+        }
+        if let Some(k) = self.normals.iter().position(|n| !n.is_finite() || n.length_squared() == 0.0) {
+            let value = format!("{:?}", self.normals[k]);
+            return Err(MeshError::BadAttribute { index: k, what: "normal", value });
+        }
+        if let Some(k) = self.uvs.iter().position(|t| !t.is_finite()) {
+            let value = format!("{:?}", self.uvs[k]);
+            return Err(MeshError::BadAttribute { index: k, what: "texture coordinate", value });
+        }
+        for (what, n) in [("normals", self.normals.len()), ("texture coordinates", self.uvs.len())] {
+            if n != 0 && n != count {
+                return Err(MeshError::Parse(format!("{n} {what} for {count} vertices")));
+            }
         }
         for (face, t) in self.tris.iter().enumerate() {
             if let Some(&index) = t.iter().find(|&&k| k as usize >= count) {
@@ -168,8 +183,54 @@ impl Mesh {
     /// Loads a Wavefront OBJ (all objects merged). `flip_v` flips texture v, as Mitsuba does by
     /// default (`flip_tex_coords`).
     pub fn load_obj(path: &Path, flip_v: bool) -> Result<Mesh, MeshError> {
+        let mut f = std::io::BufReader::new(std::fs::File::open(path)?);
+        Mesh::parse_obj(&mut f, flip_v)
+    }
+
+    /// Parses OBJ text (materials are not read: Furnace takes materials from the scene).
+    pub fn parse_obj(reader: &mut impl std::io::BufRead, flip_v: bool) -> Result<Mesh, MeshError> {
+        let mut text = Vec::new();
+        reader.read_to_end(&mut text)?;
+        // tobj 4.0.5 turns face indices into offsets unchecked (it overflows on
+        // `f 1/188888888888888` and on a relative `2/-9` with fewer than 9 texture
+        // coordinates): check every index against what the file has defined so far.
+        let lines = text.split(|&b| b == b'\n').count() as u64;
+        let mut defined = [0u64; 3]; // v, vt, vn
+        for (k, line) in text.split(|&b| b == b'\n').enumerate() {
+            let line = String::from_utf8_lossy(line);
+            // Words as tobj splits them (Unicode whitespace: a vertical tab separates too).
+            let mut words = line.split_whitespace();
+            match words.next() {
+                Some("v") => defined[0] += 1,
+                Some("vt") => defined[1] += 1,
+                Some("vn") => defined[2] += 1,
+                Some("f" | "l" | "p") => {
+                    for word in words {
+                        for (slot, i) in word.split('/').enumerate().take(3) {
+                            let Ok(index) = i.parse::<i64>() else { continue };
+                            let bad = if index < 0 {
+                                index.unsigned_abs() > defined[slot]
+                            } else {
+                                index as u64 > lines
+                            };
+                            if bad {
+                                return Err(MeshError::Parse(format!(
+                                    "line {}: index {index} refers to no {}",
+                                    k + 1,
+                                    ["vertex", "texture coordinate", "normal"][slot]
+                                )));
+                            }
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        let reader = &mut text.as_slice();
         let opts = tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() };
-        let (models, _) = tobj::load_obj(path, &opts).map_err(|e| MeshError::Parse(e.to_string()))?;
+        let no_materials = |_: &Path| Ok((Vec::new(), Default::default()));
+        let (models, _) =
+            tobj::load_obj_buf(reader, &opts, no_materials).map_err(|e| MeshError::Parse(e.to_string()))?;
         let mut out = Mesh::default();
         let all_n = models.iter().all(|m| !m.mesh.normals.is_empty());
         let all_uv = models.iter().all(|m| !m.mesh.texcoords.is_empty());
@@ -195,11 +256,20 @@ impl Mesh {
     /// Loads a PLY file (ASCII or binary): `x y z`, optional `nx ny nz` and `u v` (or `s t`),
     /// faces from `vertex_indices` (or `vertex_index`), polygons fan-triangulated.
     pub fn load_ply(path: &Path) -> Result<Mesh, MeshError> {
+        let mut f = std::io::BufReader::new(std::fs::File::open(path)?);
+        Mesh::parse_ply(&mut f)
+    }
+
+    /// Parses a PLY file's bytes (see [`Mesh::load_ply`]).
+    pub fn parse_ply(f: &mut impl std::io::BufRead) -> Result<Mesh, MeshError> {
         use ply_rs_bw::parser::Parser;
         use ply_rs_bw::ply::{DefaultElement, Property};
-        let mut f = std::io::BufReader::new(std::fs::File::open(path)?);
-        let ply =
-            Parser::<DefaultElement>::new().read_ply(&mut f).map_err(|e| MeshError::Parse(e.to_string()))?;
+        let mut bytes = Vec::new();
+        f.read_to_end(&mut bytes)?;
+        check_ply_counts(&bytes)?;
+        let ply = Parser::<DefaultElement>::new()
+            .read_ply(&mut bytes.as_slice())
+            .map_err(|e| MeshError::Parse(e.to_string()))?;
         let get = |e: &DefaultElement, names: &[&str]| -> Option<f32> {
             names.iter().find_map(|n| e.get(*n).and_then(|p| p.to_f32_lossy()))
         };
@@ -238,6 +308,31 @@ impl Mesh {
         }
         Ok(out)
     }
+}
+
+/// Refuses a PLY header whose element counts the file cannot hold (every element takes at
+/// least a byte after the header), before the parser allocates for them.
+fn check_ply_counts(bytes: &[u8]) -> Result<(), MeshError> {
+    const END: &[u8] = b"end_header";
+    let Some(end) = bytes.windows(END.len()).position(|w| w == END) else {
+        return Ok(()); // not a PLY header: the parser says so
+    };
+    let body = (bytes.len() - end - END.len()) as u64;
+    for line in String::from_utf8_lossy(&bytes[..end]).lines() {
+        let mut words = line.split_whitespace();
+        if words.next() != Some("element") {
+            continue;
+        }
+        let name = words.next().unwrap_or("");
+        if let Some(count) = words.next().and_then(|c| c.parse::<u64>().ok()) {
+            if count > body {
+                return Err(MeshError::Parse(format!(
+                    "the header declares {count} '{name}' elements; the file holds {body} bytes after it"
+                )));
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

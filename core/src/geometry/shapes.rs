@@ -98,9 +98,9 @@ pub struct SurfacePoint {
     pub uv: Vec2,
 }
 
-impl Shape {
+impl Geometry {
     pub fn prim_count(&self) -> usize {
-        match &self.geometry {
+        match self {
             Geometry::Mesh(m) => m.tris.len(),
             Geometry::Sphere(_) | Geometry::Disk(_) => 1,
             Geometry::Curves(c) => c.segments.len(),
@@ -108,7 +108,7 @@ impl Shape {
     }
 
     pub fn prim_bounds(&self, prim: usize) -> (Vec3, Vec3) {
-        match &self.geometry {
+        match self {
             Geometry::Mesh(m) => {
                 let [a, b, c] = m.tri(prim);
                 (a.min(b).min(c), a.max(b).max(c))
@@ -126,6 +126,16 @@ impl Shape {
                 (lo, hi)
             }
         }
+    }
+}
+
+impl Shape {
+    pub fn prim_count(&self) -> usize {
+        self.geometry.prim_count()
+    }
+
+    pub fn prim_bounds(&self, prim: usize) -> (Vec3, Vec3) {
+        self.geometry.prim_bounds(prim)
     }
 
     /// Nearest intersection of primitive `prim` closer than `tmax`: `(t, aux)`, where `aux`

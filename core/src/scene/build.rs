@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use glam::{Mat3, Mat4, Vec3};
 
-use super::xml::{Doc, Pos};
+use super::xml::{Doc, Pos, MAX_COORD};
 use super::{FilmSettings, PathSettings, Scene, SceneError};
 use crate::bsdf::conductor::{conductor_preset, CONDUCTOR_PRESETS};
 use crate::bsdf::microfacet::fresnel_diffuse_reflectance;
@@ -197,6 +197,9 @@ impl Builder<'_> {
             )
         })?;
         let near_clip = self.nonneg_float(i, "near_clip", 0.01)?;
+        if near_clip == 0.0 {
+            return Err(self.err(doc.pos_of(i, "near_clip"), "'near_clip' must be greater than zero"));
+        }
         let far_clip = doc.float_or(i, "far_clip", 10000.0)?;
         if !(far_clip > near_clip) {
             return Err(self.err(doc.pos_of(i, "far_clip"), "far_clip must exceed near_clip"));
@@ -409,7 +412,13 @@ impl Builder<'_> {
                 let nested = doc.children(i, "bsdf");
                 match nested.as_slice() {
                     [(_, f, _)] => {
-                        let front = self.bsdf_value(*f)?;
+                        // A two-sided BSDF nested here is only ever seen from its front (each
+                        // side is flipped to the front first): use its front on both sides,
+                        // so nesting costs one copy per level, not a doubling.
+                        let front = match self.bsdf_value(*f)? {
+                            Bsdf::TwoSided { front, .. } => *front,
+                            front => front,
+                        };
                         Bsdf::TwoSided { front: Box::new(front.clone()), back: Box::new(front) }
                     }
                     [(_, f, _), (_, bk, _)] => Bsdf::TwoSided {
@@ -431,6 +440,9 @@ impl Builder<'_> {
             "dielectric" | "roughdielectric" | "thindielectric" => {
                 let int_ior = self.ior(i, "int_ior", "bk7")?;
                 let ext_ior = self.ior(i, "ext_ior", "air")?;
+                if doc.obj(i).plugin == "roughdielectric" {
+                    self.distinct_iors(i, int_ior, ext_ior)?;
+                }
                 Bsdf::Dielectric(Dielectric {
                     eta: int_ior / ext_ior,
                     specular_reflectance: self.color(i, "specular_reflectance", Rgb::ONE)?,
@@ -475,7 +487,20 @@ impl Builder<'_> {
                 Bsdf::Hair(crate::bsdf::hair::Hair::new(sigma_a, eta, beta_m, beta_n, tilt))
             }
             "plastic" | "roughplastic" => {
-                let eta = self.ior(i, "int_ior", "polypropylene")? / self.ior(i, "ext_ior", "air")?;
+                let int_ior = self.ior(i, "int_ior", "polypropylene")?;
+                let ext_ior = self.ior(i, "ext_ior", "air")?;
+                if doc.obj(i).plugin == "roughplastic" {
+                    self.distinct_iors(i, int_ior, ext_ior)?;
+                    for name in ["alpha_u", "alpha_v"] {
+                        if doc.has(i, name) || doc.named_child_exists(i, name) {
+                            return Err(self.err(
+                                doc.pos_of(i, name),
+                                "roughplastic does not support anisotropic roughness (alpha_u, alpha_v): give one 'alpha'",
+                            ));
+                        }
+                    }
+                }
+                let eta = int_ior / ext_ior;
                 let diffuse_reflectance = self.color(i, "diffuse_reflectance", Rgb::splat(0.5))?;
                 let specular_reflectance = self.color(i, "specular_reflectance", Rgb::ONE)?;
                 let d = diffuse_reflectance.mean().element_sum() / 3.0;
@@ -522,6 +547,26 @@ impl Builder<'_> {
                 ))
             }
         })
+    }
+
+    /// The rough interfaces (roughdielectric, roughplastic) need a real interface: with equal
+    /// indices of refraction their microfacet terms divide by zero (Mitsuba refuses them too).
+    fn distinct_iors(&self, i: usize, int_ior: f32, ext_ior: f32) -> R<()> {
+        if int_ior == ext_ior {
+            let pos = if self.doc.has(i, "int_ior") {
+                self.doc.pos_of(i, "int_ior")
+            } else {
+                self.doc.pos_of(i, "ext_ior")
+            };
+            return Err(self.err(
+                pos,
+                format!(
+                    "{}: the interior and exterior indices of refraction must differ (both are {int_ior})",
+                    self.doc.describe(i)
+                ),
+            ));
+        }
+        Ok(())
     }
 
     /// A string parameter naming one of `choices` (`default` when absent).
@@ -708,9 +753,11 @@ impl Builder<'_> {
             "sphere" => {
                 let center = doc.point(i, "center")?.unwrap_or(Vec3::ZERO);
                 let radius = doc.float_or(i, "radius", 1.0)?;
-                if !(radius > 0.0) || !radius.is_finite() {
-                    return Err(self
-                        .err(doc.pos_of(i, "radius"), format!("sphere radius must be > 0, found {radius}")));
+                if !(radius > 0.0 && radius <= MAX_COORD) {
+                    return Err(self.err(
+                        doc.pos_of(i, "radius"),
+                        format!("sphere radius must be > 0 and at most {MAX_COORD:e}, found {radius:e}"),
+                    ));
                 }
                 let m = to_world * Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius));
                 let c = m.transform_point3(Vec3::ZERO);
@@ -754,7 +801,10 @@ impl Builder<'_> {
                 }
             }
             _ => {
-                return Err(self.unsupported_plugin(i, &["obj", "ply", "rectangle", "cube", "sphere", "disk"]))
+                return Err(self.unsupported_plugin(
+                    i,
+                    &["obj", "ply", "rectangle", "cube", "sphere", "disk", "linearcurve", "bsplinecurve"],
+                ))
             }
         };
         let emitters = doc.children(i, "emitter");
@@ -770,6 +820,7 @@ impl Builder<'_> {
             [_, (_, _, pos), ..] => return Err(self.err(*pos, "a shape takes one <bsdf>")),
         };
         let shape_idx = self.shapes.len() as u32;
+        self.check_extent(i, &geometry)?;
         let mut shape = Shape {
             geometry,
             bsdf,
@@ -799,6 +850,25 @@ impl Builder<'_> {
             [_, (_, _, pos), ..] => return Err(self.err(*pos, "a shape takes one <emitter>")),
         }
         self.shapes.push(shape);
+        Ok(())
+    }
+
+    /// Refuses a shape that reaches beyond what f32 geometry holds once in world space (a
+    /// sphere radius of 1e20, a mesh scaled by 1e30) or holds a non-finite bound.
+    fn check_extent(&self, i: usize, g: &Geometry) -> R<()> {
+        for k in 0..g.prim_count() {
+            let (lo, hi) = g.prim_bounds(k);
+            let far = lo.abs().max(hi.abs()).max_element();
+            if !(far <= MAX_COORD) {
+                return Err(self.err(
+                    self.doc.obj(i).pos,
+                    format!(
+                        "{} reaches coordinate {far:e} in world space: shapes must lie within +-{MAX_COORD:e}, what 32-bit float geometry can hold",
+                        self.doc.describe(i)
+                    ),
+                ));
+            }
+        }
         Ok(())
     }
 

@@ -91,6 +91,15 @@ pub struct Doc {
     pub root: usize,
 }
 
+/// The largest coordinate a scene may hold, anywhere (points, transform entries, shapes in
+/// world space): f32 geometry squares distances, and past this their sums lose all precision
+/// or overflow.
+pub const MAX_COORD: f32 = 1e15;
+
+/// How deep objects may nest (`<bsdf>` in `<bsdf>` in ...): real scenes use a handful; the
+/// parser and builder recurse, and a thread's stack is finite.
+pub const MAX_NESTING: usize = 64;
+
 const OBJECT_TAGS: &[&str] =
     &["shape", "bsdf", "texture", "emitter", "sensor", "film", "rfilter", "sampler", "integrator"];
 
@@ -341,12 +350,24 @@ pub fn parse_str(text: &str, path: &Path, defines: &[(String, String)]) -> Resul
             parser.err(root, format!("the root element must be <scene>, found <{}>", root.tag_name().name()))
         );
     }
-    if root.attribute("version").is_none() {
-        return Err(parser.err(root, "<scene> needs a version attribute, e.g. version=\"3.0.0\""));
+    parser.check_attrs(root, &["version"])?;
+    match root.attribute("version") {
+        None => return Err(parser.err(root, "<scene> needs a version attribute, e.g. version=\"3.0.0\"")),
+        Some(v) => {
+            let parts: Vec<&str> = v.split('.').collect();
+            let numeric = |p: &&str| !p.is_empty() && p.len() <= 9 && p.bytes().all(|b| b.is_ascii_digit());
+            if parts.len() != 3 || !parts.iter().all(numeric) {
+                return Err(parser.err(
+                    root,
+                    format!("invalid version number \"{v}\": expected major.minor.patch, e.g. \"3.0.0\""),
+                ));
+            }
+        }
     }
     // <default>s first, so that `$name` works anywhere; -D overrides them.
     for c in root.children().filter(|c| c.is_element()) {
         if c.tag_name().name() == "default" {
+            parser.check_attrs(c, &["name", "value"])?;
             let name = parser.required_attr(c, "name")?;
             let value = parser.required_attr(c, "value")?;
             parser.params.insert(name, value);
@@ -355,7 +376,7 @@ pub fn parse_str(text: &str, path: &Path, defines: &[(String, String)]) -> Resul
     for (k, v) in defines {
         parser.params.insert(k.clone(), v.clone());
     }
-    let root_idx = parser.parse_object(root, "scene".into(), String::new())?;
+    let root_idx = parser.parse_object(root, "scene".into(), String::new(), 0)?;
     Ok(Doc { file: path.to_path_buf(), dir, objs: parser.objs, root: root_idx })
 }
 
@@ -416,6 +437,25 @@ impl Parser<'_, '_> {
         Ok(Some(out))
     }
 
+    /// Refuses attributes an element does not take (as Mitsuba does): a misspelt one would
+    /// otherwise be ignored without a word.
+    fn check_attrs(&self, node: roxmltree::Node, allowed: &[&str]) -> Result<(), SceneError> {
+        for a in node.attributes() {
+            if a.namespace().is_none() && !allowed.contains(&a.name()) {
+                return Err(self.err(
+                    node,
+                    format!(
+                        "unexpected attribute \"{}\" in element <{}> (it takes: {})",
+                        a.name(),
+                        node.tag_name().name(),
+                        allowed.join(", ")
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     fn required_attr(&self, node: roxmltree::Node, name: &str) -> Result<String, SceneError> {
         self.attr(node, name)?.ok_or_else(|| {
             self.err(node, format!("<{}> needs a '{}' attribute", node.tag_name().name(), name))
@@ -427,7 +467,11 @@ impl Parser<'_, '_> {
         node: roxmltree::Node,
         tag: String,
         plugin: String,
+        depth: usize,
     ) -> Result<usize, SceneError> {
+        if depth > MAX_NESTING {
+            return Err(self.err(node, format!("objects nest deeper than {MAX_NESTING} levels")));
+        }
         let mut obj = Obj {
             tag,
             plugin,
@@ -440,17 +484,26 @@ impl Parser<'_, '_> {
             let ctag = c.tag_name().name();
             match ctag {
                 "default" if obj.tag == "scene" => {}
-                "integer" | "float" | "string" | "boolean" | "rgb" | "point" | "vector" => {
+                "integer" | "float" | "string" | "boolean" | "rgb" => {
+                    self.check_attrs(c, &["name", "value"])?;
+                    let name = self.required_attr(c, "name")?;
+                    let value = self.parse_value(c, ctag)?;
+                    self.push_prop(&mut obj, c, name, value)?;
+                }
+                "point" | "vector" => {
+                    self.check_attrs(c, &["name", "value", "x", "y", "z"])?;
                     let name = self.required_attr(c, "name")?;
                     let value = self.parse_value(c, ctag)?;
                     self.push_prop(&mut obj, c, name, value)?;
                 }
                 "transform" => {
+                    self.check_attrs(c, &["name"])?;
                     let name = self.required_attr(c, "name")?;
                     let m = self.parse_transform(c)?;
                     self.push_prop(&mut obj, c, name, Value::Transform(m))?;
                 }
                 "ref" => {
+                    self.check_attrs(c, &["id", "name"])?;
                     let id = self.required_attr(c, "id")?;
                     let target = *self.ids.get(&id).ok_or_else(|| {
                         self.err(c, format!("<ref id=\"{id}\"/> names no object defined before it"))
@@ -463,9 +516,10 @@ impl Parser<'_, '_> {
                     });
                 }
                 t if OBJECT_TAGS.contains(&t) => {
+                    self.check_attrs(c, &["type", "id", "name"])?;
                     let plugin = self.required_attr(c, "type")?;
                     let name = self.attr(c, "name")?;
-                    let idx = self.parse_object(c, t.to_string(), plugin)?;
+                    let idx = self.parse_object(c, t.to_string(), plugin, depth + 1)?;
                     obj.children.push(Child { name, obj: idx, pos: self.pos(c), used: Cell::new(false) });
                 }
                 other => {
@@ -498,8 +552,30 @@ impl Parser<'_, '_> {
         Ok(())
     }
 
+    /// A number that a 32-bit float holds: finite, and at most f32::MAX in magnitude.
     fn number(&self, node: roxmltree::Node, s: &str) -> Result<f64, SceneError> {
-        s.trim().parse::<f64>().map_err(|_| self.err(node, format!("expected a number, found \"{s}\"")))
+        let v = s
+            .trim()
+            .parse::<f64>()
+            .map_err(|_| self.err(node, format!("expected a number, found \"{s}\"")))?;
+        if !v.is_finite() || v.abs() > f32::MAX as f64 {
+            return Err(self.err(
+                node,
+                format!("expected a finite number within the range of a 32-bit float, found \"{s}\""),
+            ));
+        }
+        Ok(v)
+    }
+
+    /// A position or direction: each coordinate within +-[`MAX_COORD`].
+    fn coords(&self, node: roxmltree::Node, v: Vec3) -> Result<Vec3, SceneError> {
+        if v.abs().max_element() > MAX_COORD {
+            return Err(self.err(
+                node,
+                format!("coordinates ({:e}, {:e}, {:e}) lie beyond +-{MAX_COORD:e}, more than 32-bit float geometry can hold", v.x, v.y, v.z),
+            ));
+        }
+        Ok(v)
     }
 
     fn numbers(&self, node: roxmltree::Node, s: &str) -> Result<Vec<f64>, SceneError> {
@@ -534,7 +610,7 @@ impl Parser<'_, '_> {
     fn parse_value(&self, node: roxmltree::Node, tag: &str) -> Result<Value, SceneError> {
         Ok(match tag {
             "point" | "vector" => {
-                let v = self.vec3(node, 0.0, false)?;
+                let v = self.coords(node, self.vec3(node, 0.0, false)?)?;
                 if tag == "point" {
                     Value::Point(v)
                 } else {
@@ -574,9 +650,17 @@ impl Parser<'_, '_> {
     fn parse_transform(&self, node: roxmltree::Node) -> Result<Mat4, SceneError> {
         let mut m = Mat4::IDENTITY;
         for c in node.children().filter(|c| c.is_element()) {
+            let allowed: &[&str] = match c.tag_name().name() {
+                "translate" | "scale" => &["value", "x", "y", "z"],
+                "rotate" => &["value", "x", "y", "z", "angle"],
+                "matrix" => &["value"],
+                "lookat" => &["origin", "target", "up"],
+                _ => &[],
+            };
+            self.check_attrs(c, allowed)?;
             let op = match c.tag_name().name() {
-                "translate" => Mat4::from_translation(self.vec3(c, 0.0, false)?),
-                "scale" => Mat4::from_scale(self.vec3(c, 1.0, true)?),
+                "translate" => Mat4::from_translation(self.coords(c, self.vec3(c, 0.0, false)?)?),
+                "scale" => Mat4::from_scale(self.coords(c, self.vec3(c, 1.0, true)?)?),
                 "rotate" => {
                     let axis = self.vec3(c, 0.0, false)?;
                     let angle = self.number(c, &self.required_attr(c, "angle")?)? as f32;
@@ -590,6 +674,13 @@ impl Parser<'_, '_> {
                     let n = self.numbers(c, &v)?;
                     let f: Vec<f32> = n.iter().map(|&x| x as f32).collect();
                     match f.len() {
+                        16 if f[12..] != [0.0, 0.0, 0.0, 1.0] => return Err(self.err(
+                            c,
+                            format!(
+                                "<matrix> must be affine: its last row must be 0 0 0 1, found {} {} {} {}",
+                                f[12], f[13], f[14], f[15]
+                            ),
+                        )),
                         // Row-major in the file; glam is column-major.
                         16 => Mat4::from_cols_array(&[
                             f[0], f[4], f[8], f[12], f[1], f[5], f[9], f[13], f[2], f[6], f[10], f[14], f[3],
@@ -613,8 +704,8 @@ impl Parser<'_, '_> {
                         }
                         Ok(Vec3::new(n[0] as f32, n[1] as f32, n[2] as f32))
                     };
-                    let origin = p("origin")?;
-                    let target = p("target")?;
+                    let origin = self.coords(c, p("origin")?)?;
+                    let target = self.coords(c, p("target")?)?;
                     let dir = (target - origin).normalize_or_zero();
                     if dir == Vec3::ZERO {
                         return Err(self.err(c, "<lookat> origin and target coincide"));
@@ -636,6 +727,19 @@ impl Parser<'_, '_> {
                 other => return Err(self.err(c, format!("unsupported transform operation <{other}>"))),
             };
             m = op * m;
+            if !m.is_finite() || m.abs().to_cols_array().iter().any(|&x| x > MAX_COORD) {
+                return Err(self.err(
+                    c,
+                    format!("the transform reaches values beyond +-{MAX_COORD:e}, more than 32-bit float geometry can hold"),
+                ));
+            }
+        }
+        let det = m.determinant();
+        if !(det.abs() > 0.0) || !det.is_finite() || !m.inverse().is_finite() {
+            return Err(self.err(
+                node,
+                format!("the transform is singular or cannot be inverted in 32-bit floats (determinant {det}): normals and inverses would be undefined"),
+            ));
         }
         Ok(m)
     }

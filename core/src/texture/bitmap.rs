@@ -52,6 +52,18 @@ pub enum BitmapError {
     Empty,
     #[error("image has {0} non-finite texels")]
     NonFinite(usize),
+    #[error("image declares {width} x {height} texels, more than the limit of {limit}")]
+    TooLarge { width: u64, height: u64, limit: u64 },
+}
+
+/// The most texels one image may have (a 16k x 8k environment map; 1.6 GB of linear RGB).
+pub const MAX_TEXELS: u64 = 1 << 27;
+
+/// Decoder limits for an image of at most `max_texels` texels (RGBA, 32-bit float at most).
+fn limits_for(max_texels: u64) -> image::Limits {
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(max_texels.saturating_mul(16));
+    limits
 }
 
 /// Linear RGB texels, row 0 at the top.
@@ -66,14 +78,46 @@ impl Bitmap {
     /// Loads PNG, JPEG, HDR or EXR. Integer formats are sRGB-decoded unless `raw`.
     pub fn load(path: &Path, raw: bool) -> Result<Bitmap, BitmapError> {
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
-        let bmp = if ext == "exr" {
-            Self::load_exr(path)?
+        let bytes = std::fs::read(path).map_err(image::ImageError::IoError)?;
+        Self::decode(&bytes, ext == "exr", raw, MAX_TEXELS)
+    }
+
+    /// Decodes an image held in memory (EXR when `exr`, else whatever format its bytes say),
+    /// refusing one that declares more than `max_texels` before allocating it.
+    pub fn decode(bytes: &[u8], exr: bool, raw: bool, max_texels: u64) -> Result<Bitmap, BitmapError> {
+        let too_large = |width: u64, height: u64| {
+            (width.saturating_mul(height) > max_texels).then_some(BitmapError::TooLarge {
+                width,
+                height,
+                limit: max_texels,
+            })
+        };
+        let bmp = if exr {
+            let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)?;
+            // Every layer counts (the reader may decode them all to find the RGBA one).
+            let mut texels = 0u64;
+            for h in &meta.headers {
+                let (w, h) = (h.layer_size.width() as u64, h.layer_size.height() as u64);
+                texels = texels.saturating_add(w.saturating_mul(h));
+                if let Some(e) = too_large(w, h).or_else(|| too_large(texels, 1)) {
+                    return Err(e);
+                }
+            }
+            Self::decode_exr(bytes)?
         } else {
-            let img = image::ImageReader::open(path)
-                .map_err(image::ImageError::IoError)?
+            let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
                 .with_guessed_format()
-                .map_err(image::ImageError::IoError)?
-                .decode()?;
+                .map_err(image::ImageError::IoError)?;
+            reader.limits(limits_for(max_texels));
+            let (w, h) = reader.into_dimensions()?;
+            if let Some(e) = too_large(w as u64, h as u64) {
+                return Err(e);
+            }
+            let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
+                .with_guessed_format()
+                .map_err(image::ImageError::IoError)?;
+            reader.limits(limits_for(max_texels));
+            let img = reader.decode()?;
             let is_float = matches!(img.color(), image::ColorType::Rgb32F | image::ColorType::Rgba32F);
             let rgb = img.to_rgb32f(); // normalises integers to [0, 1]; no linearisation
             let decode = !is_float && !raw;
@@ -100,20 +144,25 @@ impl Bitmap {
         Ok(bmp)
     }
 
-    fn load_exr(path: &Path) -> Result<Bitmap, BitmapError> {
+    fn decode_exr(bytes: &[u8]) -> Result<Bitmap, BitmapError> {
         use exr::prelude::*;
-        let img = read_first_rgba_layer_from_file(
-            path,
-            |res, _| Bitmap {
-                width: res.width(),
-                height: res.height(),
-                texels: vec![Rgb::ZERO; res.width() * res.height()],
-            },
-            |b: &mut Bitmap, pos, (r, g, bl, _a): (f32, f32, f32, f32)| {
-                let w = b.width;
-                b.texels[pos.y() * w + pos.x()] = Rgb::new(r, g, bl);
-            },
-        )?;
+        let img = read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .rgba_channels(
+                |res, _| Bitmap {
+                    width: res.width(),
+                    height: res.height(),
+                    texels: vec![Rgb::ZERO; res.width() * res.height()],
+                },
+                |b: &mut Bitmap, pos, (r, g, bl, _a): (f32, f32, f32, f32)| {
+                    let w = b.width;
+                    b.texels[pos.y() * w + pos.x()] = Rgb::new(r, g, bl);
+                },
+            )
+            .first_valid_layer()
+            .all_attributes()
+            .from_buffered(std::io::Cursor::new(bytes))?;
         Ok(img.layer_data.channel_data.pixels)
     }
 
