@@ -258,7 +258,11 @@ pub fn render_local(
     worker.join().map_err(|_| anyhow::anyhow!("the render worker panicked"))??;
     let status = lock().status(&job)?;
     if status.state != JobState::Done {
-        bail!("the render stopped unfinished: {}", status.errors.join("; "));
+        let why = match status.errors.is_empty() {
+            true => format!("the job is {:?} and recorded no error", status.state),
+            false => status.errors.join("; "),
+        };
+        bail!("the render stopped unfinished: {why}");
     }
     let stats = link.stats.lock().unwrap_or_else(|e| e.into_inner()).clone();
     let image = lock().image(&job)?;

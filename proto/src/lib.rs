@@ -13,6 +13,7 @@ use furnace_core::film::PixelSum;
 pub use furnace_core::Region;
 use serde::{Deserialize, Serialize};
 
+pub mod fuzz;
 mod partial;
 pub use partial::{decode_partial, encode_partial, PartialError};
 

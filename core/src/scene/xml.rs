@@ -674,13 +674,12 @@ impl Parser<'_, '_> {
                     let n = self.numbers(c, &v)?;
                     let f: Vec<f32> = n.iter().map(|&x| x as f32).collect();
                     match f.len() {
-                        16 if f[12..] != [0.0, 0.0, 0.0, 1.0] => return Err(self.err(
-                            c,
-                            format!(
-                                "<matrix> must be affine: its last row must be 0 0 0 1, found {} {} {} {}",
-                                f[12], f[13], f[14], f[15]
-                            ),
-                        )),
+                        16 if f[12..] != [0.0, 0.0, 0.0, 1.0] => {
+                            let row = format!("{} {} {} {}", f[12], f[13], f[14], f[15]);
+                            let msg =
+                                format!("<matrix> must be affine: its last row must be 0 0 0 1, found {row}");
+                            return Err(self.err(c, msg));
+                        }
                         // Row-major in the file; glam is column-major.
                         16 => Mat4::from_cols_array(&[
                             f[0], f[4], f[8], f[12], f[1], f[5], f[9], f[13], f[2], f[6], f[10], f[14], f[3],
