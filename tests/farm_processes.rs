@@ -211,6 +211,15 @@ fn bad_uploads_are_refused_and_change_nothing() {
 
     let a = lease().unwrap();
     let good_a = render(&a);
+    // A 1 KB partial whose header declares a 60000 x 60000 window (14.4 GB once decoded): to a
+    // job that does not exist, 404 before it is decoded; to a leased chunk, 400 from its header.
+    let huge = furnace_proto::fuzz::partial_declaring(60_000, 60_000);
+    let none =
+        http.put(format!("{url}/v1/jobs/nope/chunks/0/result?epoch=1")).body(huge.clone()).send().unwrap();
+    assert_eq!(none.status().as_u16(), 404);
+    let (code, e) = put(&a, a.epoch, huge);
+    assert_eq!(code, 400, "{e}");
+    assert!(e["error"].as_str().unwrap().contains("declares 60000 x 60000"), "{e}");
     // Garbage, NaN and wrong-size bodies: 400 with a JSON error, the lease still holds.
     let (code, e) = put(&a, a.epoch, b"garbage".to_vec());
     assert_eq!(code, 400, "{e}");

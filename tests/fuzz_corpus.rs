@@ -32,7 +32,8 @@ fn the_fuzzing_corpus_replays_without_a_panic() {
 }
 
 /// Writes the seed partials of `fuzz/corpus/partial` (run by hand with `--ignored` when the
-/// partial format changes).
+/// partial format changes). The first byte is the target's mode: 0, the upload as it comes;
+/// 1, an EXR the target compresses first.
 #[test]
 #[ignore]
 fn write_partial_seeds() {
@@ -46,7 +47,17 @@ fn write_partial_seeds() {
         p.count = 4;
     }
     a.dropped = Dropped { nan: 1, infinite: 2, too_bright: 3 };
-    std::fs::write(dir.join("seed_tile.zst"), furnace_proto::encode_partial(&a)).unwrap();
-    std::fs::write(dir.join("seed_empty.zst"), furnace_proto::encode_partial(&Accum::new(0, 0, 1, 1)))
-        .unwrap();
+    let seeds = [
+        ("seed_tile", furnace_proto::encode_partial(&a)),
+        ("seed_empty", furnace_proto::encode_partial(&Accum::new(0, 0, 1, 1))),
+        ("seed_huge_window", furnace_proto::fuzz::partial_declaring(60_000, 60_000)),
+        ("seed_wide_window", furnace_proto::fuzz::partial_declaring(60_000, 1)),
+    ];
+    for (name, zst) in seeds {
+        std::fs::write(dir.join(format!("{name}.zst")), [&[0u8][..], &zst].concat()).unwrap();
+        let exr = zstd::bulk::decompress(&zst, 1 << 24).unwrap();
+        if exr.len() < 4096 {
+            std::fs::write(dir.join(format!("{name}.exr")), [&[1u8][..], &exr].concat()).unwrap();
+        }
+    }
 }

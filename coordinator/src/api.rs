@@ -461,8 +461,8 @@ async fn upload(
     let t = Instant::now();
     metrics::counter!("furnace_upload_bytes_total").increment(body.len() as u64);
     tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
-        // Decode outside the lock: it is the slow part.
-        let max = coord.lock().unwrap_or_else(|e| e.into_inner()).max_partial;
+        // The lease first; then decode, outside the lock: it is the slow part.
+        let max = crate::state::check_upload(&coord, &id, chunk, epoch)?;
         let acc = decode_partial(&body, max).map_err(|e| CoordError::BadRequest(e.to_string()))?;
         crate::state::accept_partial(&coord, &id, chunk, epoch, &acc, Some(&body))
     })

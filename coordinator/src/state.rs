@@ -1011,6 +1011,19 @@ pub fn accept_partial(
     Ok(())
 }
 
+/// The first check of an upload, before its body is decoded: the chunk must be leased under
+/// `epoch`. Returns the most bytes a partial may decompress to.
+pub fn check_upload(
+    coord: &Mutex<Coordinator>,
+    job: &str,
+    chunk: u32,
+    epoch: u64,
+) -> Result<usize, CoordError> {
+    let checked = coord.lock().unwrap_or_else(|e| e.into_inner()).leased(job, chunk, epoch).map(|_| ());
+    checked.inspect_err(|_| count_duplicate(coord, job, chunk))?;
+    Ok(coord.lock().unwrap_or_else(|e| e.into_inner()).max_partial)
+}
+
 /// Counts a refused upload of a chunk that is already merged (a lease that expired while its
 /// worker was still rendering, or a retried upload whose first attempt got through).
 fn count_duplicate(coord: &Mutex<Coordinator>, job: &str, chunk: u32) {

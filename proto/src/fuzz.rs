@@ -68,9 +68,39 @@ pub fn image(data: &[u8]) {
     let _ = Bitmap::decode(bytes, mode & 1 == 1, mode & 2 == 2, FUZZ_MAX_TEXELS);
 }
 
-/// A chunk's partial upload, decoded with the coordinator's limit on its size.
+/// A chunk's partial upload, decoded with the coordinator's limit on its size. The first byte
+/// picks the bytes as they come (even) or an EXR that is compressed first (odd), so that the
+/// fuzzer mutates the EXR itself, not only the zstd frame around it.
 pub fn partial(data: &[u8]) {
-    let _ = crate::decode_partial(data, 1 << 24);
+    let Some((&mode, bytes)) = data.split_first() else { return };
+    match mode & 1 {
+        0 => drop(crate::decode_partial(bytes, 1 << 24)),
+        _ => drop(crate::decode_partial(&zstd::bulk::compress(bytes, 1).expect("in memory"), 1 << 24)),
+    }
+}
+
+/// A hostile upload: a valid 1 x 1 partial whose header declares a `width` x `height` data
+/// window, with an offset table to match (so an EXR reader trusting it allocates the whole
+/// image); a few hundred bytes once compressed.
+pub fn partial_declaring(width: i32, height: i32) -> Vec<u8> {
+    fn field(bytes: &mut [u8], key: &[u8]) -> usize {
+        bytes.windows(key.len()).position(|w| w == key).expect("the attribute is written") + key.len() + 4
+    }
+    let one = furnace_core::Accum::new(0, 0, 1, 1);
+    let exr = zstd::bulk::decompress(&crate::encode_partial(&one), 1 << 20).expect("just encoded");
+    let block = 8 + crate::WORDS * 4; // line number, byte count, one pixel
+    let mut out = exr[..exr.len() - 8 - block].to_vec(); // the header alone
+    let at = field(&mut out, b"dataWindow\0box2i\0");
+    out[at + 8..at + 12].copy_from_slice(&(width - 1).to_le_bytes());
+    out[at + 12..at + 16].copy_from_slice(&(height - 1).to_le_bytes());
+    let at = field(&mut out, b"chunkCount\0int\0");
+    out[at..at + 4].copy_from_slice(&height.to_le_bytes());
+    let first_block = (out.len() + 8 * height as usize) as u64;
+    for _ in 0..height {
+        out.extend_from_slice(&first_block.to_le_bytes());
+    }
+    out.extend_from_slice(&exr[exr.len() - block..]);
+    zstd::bulk::compress(&out, 19).expect("in memory")
 }
 
 /// A job submission's JSON: parsed, its bundle checked and hashed.

@@ -79,6 +79,38 @@ pub fn encode_partial(acc: &Accum) -> Vec<u8> {
     zstd::bulk::compress(&exr, 1).expect("zstd compresses to memory")
 }
 
+/// Checks the EXR header before anything is decoded: one uncompressed, flat, scan-line
+/// layer whose pixel data (22 words a pixel) fits in the bytes that came, so a small upload
+/// whose header declares a huge data window allocates nothing.
+fn check_header(exr: &[u8]) -> std::result::Result<(), PartialError> {
+    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(exr), false)
+        .map_err(|e| PartialError::Exr(e.to_string()))?;
+    let [header] = meta.headers.as_slice() else {
+        return Err(PartialError::Exr(format!("{} layers; a partial has one", meta.headers.len())));
+    };
+    let mut expected = channel_names();
+    expected.sort();
+    let found: Vec<String> = header.channels.list.iter().map(|c| c.name.to_string()).collect();
+    if found != expected {
+        return Err(PartialError::Channels { expected: expected.join(", "), found: found.join(", ") });
+    }
+    if header.compression != Compression::Uncompressed
+        || header.deep
+        || header.blocks != exr::meta::BlockDescription::ScanLines
+    {
+        return Err(PartialError::Exr("a partial is an uncompressed, flat, scan-line EXR".into()));
+    }
+    let (w, h) = (header.layer_size.width() as u64, header.layer_size.height() as u64);
+    let need = w.checked_mul(h).and_then(|n| n.checked_mul(WORDS as u64 * 4));
+    match need {
+        Some(n) if n <= exr.len() as u64 => Ok(()),
+        _ => Err(PartialError::Exr(format!(
+            "its header declares {w} x {h} pixels, more than the {} bytes of the upload hold",
+            exr.len()
+        ))),
+    }
+}
+
 /// Decodes a partial, refusing anything that is not exactly the format above or that would
 /// decompress past `max_bytes`.
 pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Accum, PartialError> {
@@ -89,6 +121,7 @@ pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Acc
             PartialError::Zstd(e)
         }
     })?;
+    check_header(&exr)?;
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -193,6 +226,14 @@ mod tests {
             .unwrap();
         let nan = zstd::bulk::compress(&exr, 1).unwrap();
         assert!(matches!(decode_partial(&nan, 1 << 20), Err(PartialError::Channels { .. })));
+        // A tiny upload whose header declares a 60000 x 60000 data window: refused from the
+        // header, before anything is allocated for its pixels.
+        let huge = crate::fuzz::partial_declaring(60_000, 60_000);
+        assert!(huge.len() < 1000, "{} bytes", huge.len());
+        match decode_partial(&huge, 1 << 20) {
+            Err(PartialError::Exr(e)) => assert!(e.contains("60000 x 60000"), "{e}"),
+            other => panic!("{other:?}"),
+        }
         // Bigger than allowed once decompressed.
         let big = encode_partial(&Accum::new(0, 0, 64, 64));
         assert!(matches!(decode_partial(&big, 1000), Err(PartialError::TooLarge(_))));
