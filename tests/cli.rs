@@ -131,3 +131,20 @@ fn render_with_a_blazing_light_finishes_and_reports_dropped_samples() {
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("exposure"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A careless job is refused at once, naming the limit, instead of growing its chunk plan
+/// until memory runs out (issue 14: cbox at 4096 spp in 1-pixel, 1-spp chunks is 268M chunks).
+#[test]
+fn a_job_beyond_the_chunk_limit_is_refused_naming_the_limit() {
+    let cbox = env!("CARGO_MANIFEST_DIR").to_string() + "/examples/cbox.xml";
+    let t = std::time::Instant::now();
+    let o = furnace()
+        .args(["render", "--spp", "4096", "--tile", "1", "--spp-per-chunk", "1", "-o", "/dev/null"])
+        .arg(&cbox)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{stderr}");
+    assert!(stderr.contains("268435456 chunks, more than the limit of 1048576"), "{stderr}");
+    assert!(t.elapsed().as_secs() < 10, "refused only after {:?}", t.elapsed());
+}

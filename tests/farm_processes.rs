@@ -251,6 +251,12 @@ fn bad_uploads_are_refused_and_change_nothing() {
     let (code, e) = put(&b, b.epoch - 1, render(&b));
     assert_eq!(code, 409, "{e}");
     assert!(e["error"].as_str().unwrap().contains("stale"), "{e}");
+    // A job beyond the limits: 422 naming the limit, before anything is planned.
+    let spec = serde_json::json!({"bundle": bundle_of(&url, &job), "settings": {"width": 0, "height": 0, "spp": u64::MAX}});
+    let r = http.post(format!("{url}/v1/jobs")).json(&spec).send().unwrap();
+    assert_eq!(r.status().as_u16(), 422);
+    let e: serde_json::Value = r.json().unwrap();
+    assert!(e["error"].as_str().unwrap().contains("limit of 16777216 samples"), "{e}");
     // Garbage lease request.
     let r = http.post(format!("{url}/v1/leases")).body("{").send().unwrap();
     assert_eq!(r.status().as_u16(), 400);

@@ -433,9 +433,7 @@ impl Coordinator {
         if s.spp == 0 {
             s.spp = scene.spp as u64;
         }
-        if s.tile_size == 0 || s.spp_per_chunk == 0 {
-            return Err(CoordError::BadRequest("tile_size and spp_per_chunk must be positive".into()));
-        }
+        s.check_limits().map_err(CoordError::Unprocessable)?;
         if let Some(t) = s.target_rel_error {
             if !(t.is_finite() && t > 0.0) {
                 return Err(CoordError::BadRequest(format!("target_rel_error must be positive, got {t}")));

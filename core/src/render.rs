@@ -41,10 +41,17 @@ pub fn plan_regions(width: u32, height: u32, spp: u64, tile: u32, spp_per_chunk:
     let mut out = Vec::new();
     let mut s0 = 0;
     while s0 < spp {
-        let s1 = (s0 + spp_per_chunk).min(spp);
+        let s1 = s0.saturating_add(spp_per_chunk).min(spp);
         for y0 in (0..height).step_by(tile as usize) {
             for x0 in (0..width).step_by(tile as usize) {
-                out.push(Region { x0, y0, x1: (x0 + tile).min(width), y1: (y0 + tile).min(height), s0, s1 });
+                out.push(Region {
+                    x0,
+                    y0,
+                    x1: x0.saturating_add(tile).min(width),
+                    y1: y0.saturating_add(tile).min(height),
+                    s0,
+                    s1,
+                });
             }
         }
         s0 = s1;

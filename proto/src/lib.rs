@@ -53,11 +53,46 @@ impl Default for JobSettings {
     }
 }
 
+/// The most chunks one job may have (its plan and chunk states take about 100 bytes each).
+pub const MAX_CHUNKS: u64 = 1 << 20;
+/// The most samples per pixel one job may ask for.
+pub const MAX_SPP: u64 = 1 << 24;
+
 impl JobSettings {
     /// Tiles in one pass of the plan: chunk `id` is tile `id % n` of pass `id / n`.
     pub fn tiles(&self) -> u32 {
         let t = self.tile_size.max(1);
-        self.width.div_ceil(t) * self.height.div_ceil(t)
+        self.width.div_ceil(t).saturating_mul(self.height.div_ceil(t))
+    }
+
+    /// Checks the settings against the job limits (film size, [`MAX_SPP`], [`MAX_CHUNKS`])
+    /// with checked arithmetic, before anything is planned or allocated; returns the number of
+    /// chunks. The error names the limit.
+    pub fn check_limits(&self) -> Result<u64, String> {
+        use furnace_core::scene::build::{MAX_FILM_PIXELS, MAX_FILM_SIDE};
+        let (w, h) = (self.width, self.height);
+        if w > MAX_FILM_SIDE || h > MAX_FILM_SIDE || w as u64 * h as u64 > MAX_FILM_PIXELS {
+            return Err(format!(
+                "a {w} x {h} image is too large: at most {MAX_FILM_SIDE} pixels a side and {MAX_FILM_PIXELS} in all"
+            ));
+        }
+        if self.tile_size == 0 || self.spp_per_chunk == 0 {
+            return Err("tile_size and spp_per_chunk must be positive".into());
+        }
+        if self.spp > MAX_SPP {
+            return Err(format!("spp {} is more than the limit of {MAX_SPP} samples per pixel", self.spp));
+        }
+        let t = self.tile_size as u64;
+        let tiles = (w as u64).div_ceil(t) * (h as u64).div_ceil(t);
+        let chunks = tiles * self.spp.div_ceil(self.spp_per_chunk);
+        if chunks > MAX_CHUNKS {
+            return Err(format!(
+                "{w} x {h} pixels at {} spp in {t}-pixel tiles of {} spp makes {chunks} chunks, more than \
+                 the limit of {MAX_CHUNKS}: use larger tiles or more samples per chunk",
+                self.spp, self.spp_per_chunk
+            ));
+        }
+        Ok(chunks)
     }
 }
 
@@ -346,6 +381,27 @@ mod tests {
     fn settings_round_trip_with_defaults() {
         let s: JobSettings = serde_json_like("{}");
         assert_eq!(s, JobSettings::default());
+    }
+
+    #[test]
+    fn job_limits_are_checked_without_overflow() {
+        let ok = JobSettings::default();
+        assert_eq!(ok.check_limits(), Ok(510 * 64));
+        let refused = |s: JobSettings, fragment: &str| {
+            let e = s.check_limits().unwrap_err();
+            assert!(e.contains(fragment), "{e}");
+        };
+        refused(JobSettings { spp: u64::MAX, ..ok.clone() }, "limit of 16777216 samples");
+        // The careless submit of issue 14: cbox (256 x 256) at 4096 spp in 1-pixel, 1-spp chunks.
+        let careless = JobSettings { width: 256, height: 256, tile_size: 1, spp_per_chunk: 1, ..ok.clone() };
+        refused(careless, "268435456 chunks, more than the limit of 1048576");
+        refused(JobSettings { width: 65536, height: 65536, ..ok.clone() }, "at most 65535 pixels a side");
+        refused(JobSettings { width: u32::MAX, height: 1, ..ok.clone() }, "at most 65535 pixels a side");
+        refused(JobSettings { width: 65535, height: 65535, ..ok.clone() }, "33554432 in all");
+        refused(JobSettings { tile_size: 0, ..ok.clone() }, "must be positive");
+        let huge_tiles = JobSettings { tile_size: u32::MAX, spp_per_chunk: u64::MAX, spp: 16, ..ok.clone() };
+        assert_eq!(huge_tiles.check_limits(), Ok(1));
+        assert_eq!(chunk_plan(&huge_tiles).len(), 1);
     }
 
     // Minimal deserialisation of an empty object without pulling serde_json into proto's tests.
