@@ -85,3 +85,22 @@ fn nested_twosided_bsdfs_load_in_linear_space_and_render_as_one() {
     assert!(a == b);
     assert!(a.develop().mean_luminance() > 0.05, "the back of the rectangle is lit: two-sided");
 }
+
+/// Issue 14: 3000 nested `<bsdf>` elements (an 85 KB scene) overflowed the loader thread's
+/// stack. Refused at depth 64 on a thread with tokio's 2 MiB blocking-thread stack.
+#[test]
+fn three_thousand_nested_bsdfs_are_refused_without_overflowing_the_stack() {
+    let xml = format!(
+        r#"<scene version="3.0.0"><shape type="sphere">{}{}</shape></scene>"#,
+        "<bsdf type=\"twosided\">".repeat(3000),
+        "</bsdf>".repeat(3000)
+    );
+    assert!(xml.len() > 80_000);
+    let e = std::thread::Builder::new()
+        .stack_size(2 << 20)
+        .spawn(move || common::load_str(&xml).map(|_| ()).unwrap_err().to_string())
+        .unwrap()
+        .join()
+        .expect("no stack overflow");
+    assert!(e.contains("objects nest deeper than 64 levels"), "{e}");
+}

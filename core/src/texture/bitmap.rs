@@ -247,4 +247,62 @@ mod load_tests {
         assert!((srgb - srgb_to_linear(188.0 / 255.0)).abs() < 1e-6 && (raw - 188.0 / 255.0).abs() < 1e-6);
         std::fs::remove_dir_all(&dir).ok();
     }
+
+    /// Writes `w` and `h` over the data window of an EXR, as a hostile file would.
+    fn exr_declaring(w: i32, h: i32) -> Vec<u8> {
+        use exr::prelude::*;
+        let mut exr = Vec::new();
+        let ch = SpecificChannels::rgb(|_: Vec2<usize>| (1.0f32, 1.0, 1.0));
+        Image::from_channels((1, 1), ch)
+            .write()
+            .non_parallel()
+            .to_buffered(std::io::Cursor::new(&mut exr))
+            .unwrap();
+        let key = b"dataWindow\0box2i\0";
+        let at = exr.windows(key.len()).position(|k| k == key).unwrap() + key.len() + 4;
+        exr[at + 8..at + 12].copy_from_slice(&(w - 1).to_le_bytes());
+        exr[at + 12..at + 16].copy_from_slice(&(h - 1).to_le_bytes());
+        exr
+    }
+
+    /// A 1 x 1 PNG whose header (CRC fixed up) declares `w` x `h`.
+    fn png_declaring(w: u32, h: u32) -> Vec<u8> {
+        let mut png = Vec::new();
+        image::write_buffer_with_format(
+            &mut std::io::Cursor::new(&mut png),
+            &[1u8, 2, 3],
+            1,
+            1,
+            image::ExtendedColorType::Rgb8,
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+        // Signature (8), IHDR length (4), "IHDR" (4), width, height, 5 more bytes, CRC.
+        png[16..20].copy_from_slice(&w.to_be_bytes());
+        png[20..24].copy_from_slice(&h.to_be_bytes());
+        let crc = png[12..29].iter().fold(!0u32, |mut c, &b| {
+            c ^= b as u32;
+            for _ in 0..8 {
+                c = if c & 1 == 1 { (c >> 1) ^ 0xEDB8_8320 } else { c >> 1 };
+            }
+            c
+        });
+        png[29..33].copy_from_slice(&(!crc).to_be_bytes());
+        png
+    }
+
+    /// Issue 14: a 480 KB EXR whose header declares 60000 x 60000 (43 GB decoded) aborted the
+    /// coordinator. Sizes are checked from the header, before decoding.
+    #[test]
+    fn textures_declaring_huge_sizes_are_refused_from_the_header() {
+        for (bytes, exr) in [(exr_declaring(60_000, 60_000), true), (png_declaring(60_000, 60_000), false)] {
+            match Bitmap::decode(&bytes, exr, false, MAX_TEXELS) {
+                Err(BitmapError::TooLarge { width: 60_000, height: 60_000, .. }) => {}
+                other => panic!("{:?}", other.map(|b| (b.width, b.height))),
+            }
+        }
+        // The same files, honest: they load.
+        assert_eq!(Bitmap::decode(&exr_declaring(1, 1), true, false, MAX_TEXELS).unwrap().width, 1);
+        assert_eq!(Bitmap::decode(&png_declaring(1, 1), false, false, MAX_TEXELS).unwrap().width, 1);
+    }
 }
