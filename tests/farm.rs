@@ -190,3 +190,88 @@ fn a_noise_target_job_survives_a_restart_with_the_same_bytes() {
     assert!(got == expect, "noise-target result differs after a restart");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Restart never fails because of one job's files: a stored partial that is garbage, one of
+/// the wrong chunk, a temporary file of an interrupted write, scene files gone, then a garbage
+/// checkpoint. Each unusable file is moved to `quarantine/`, named in the job's
+/// errors, and its chunks render again: the result has the same bytes; the other jobs go on.
+#[test]
+fn corrupt_stored_files_are_quarantined_and_their_chunks_render_again() {
+    let dir = scratch("coord-quarantine");
+    let data = dir.join("data");
+    let scene = load("small.xml", &[]);
+    let settings = JobSettings {
+        spp: 4,
+        tile_size: 8,
+        spp_per_chunk: 2,
+        seed: 5,
+        width: 0,
+        height: 0,
+        ..JobSettings::default()
+    };
+    let coord = open_coordinator(&data);
+    coord.lock().unwrap().checkpoint_interval = std::time::Duration::from_secs(3600);
+    let job = submit_small(&coord, &scene, settings.clone());
+    let other = submit_small(&coord, &scene, JobSettings { seed: 6, ..settings.clone() });
+    let job_dir = data.join("jobs").join(&job);
+    // Leases alternate between the two jobs; 24 uploads leave partials of both on disk.
+    assert_eq!(render_leases(&coord, &scene, 24), 24);
+    drop(coord);
+    let partials = job_dir.join("partials");
+    let mut stored: Vec<_> = std::fs::read_dir(&partials).unwrap().map(|e| e.unwrap().path()).collect();
+    stored.sort();
+    assert!(stored.len() >= 4, "{} partials", stored.len());
+    std::fs::write(&stored[0], b"garbage").unwrap();
+    std::fs::copy(&stored[2], &stored[1]).unwrap(); // another chunk's tile
+    std::fs::write(partials.join(".7.zst.tmp"), b"half a write").unwrap();
+    std::fs::remove_dir_all(data.join("bundles")).unwrap();
+    std::fs::remove_dir_all(data.join("files")).unwrap();
+    // Both jobs' scene files gone: the coordinator starts, without them.
+    let coord = open_coordinator(&data);
+    for id in [&job, &other] {
+        assert!(matches!(coord.lock().unwrap().status(id), Err(CoordError::NotFound(_))));
+    }
+    // The files come back (as a user would restore them): both jobs are back.
+    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
+    for (rel, path) in files {
+        std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[&rel])).unwrap();
+    }
+    drop(coord);
+    let coord = open_coordinator(&data);
+    {
+        let c = coord.lock().unwrap();
+        let s = c.status(&job).unwrap();
+        assert_eq!(
+            s.errors.iter().filter(|e| e.contains("moved to quarantine/")).count(),
+            2,
+            "{:?}",
+            s.errors
+        );
+        assert!(!partials.join(".7.zst.tmp").exists());
+        assert_eq!(std::fs::read_dir(job_dir.join("quarantine")).unwrap().count(), 2);
+    }
+    render_leases(&coord, &scene, usize::MAX);
+    let c = coord.lock().unwrap();
+    assert_eq!(c.status(&job).unwrap().state, JobState::Done);
+    assert_eq!(c.status(&other).unwrap().state, JobState::Done);
+    let expect = render(&scene, 4, 5).0.develop();
+    assert!(c.image(&job).unwrap().data == expect.data, "result differs after quarantine");
+    drop(c);
+    drop(coord);
+    // A garbage checkpoint: quarantined, every chunk in it renders again.
+    let db = rusqlite::Connection::open(data.join("furnace.db")).unwrap();
+    db.execute("UPDATE jobs SET state = 'running' WHERE id = ?1", [&job]).unwrap();
+    drop(db);
+    std::fs::write(job_dir.join("checkpoint"), [255u8; 64]).unwrap();
+    std::fs::remove_file(job_dir.join("result.exr")).unwrap();
+    let coord = open_coordinator(&data);
+    let s = coord.lock().unwrap().status(&job).unwrap();
+    assert_eq!(s.chunks_done, 0);
+    assert!(s.errors.iter().any(|e| e.contains("stored checkpoint was unusable")), "{:?}", s.errors);
+    render_leases(&coord, &scene, usize::MAX);
+    let c = coord.lock().unwrap();
+    assert_eq!(c.status(&job).unwrap().state, JobState::Done);
+    assert!(c.image(&job).unwrap().data == expect.data, "result differs after a lost checkpoint");
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}

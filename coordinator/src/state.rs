@@ -116,6 +116,47 @@ impl Job {
         data.join("jobs").join(&self.id)
     }
 
+    /// Checks that `acc` is a partial of `chunk`: its rectangle (the chunk's tile grown by the
+    /// filter margin) and its sample count.
+    fn fits(&self, chunk: u32, acc: &Accum) -> Result<(), String> {
+        let s = &self.spec.settings;
+        let r = &self.plan[chunk as usize].region;
+        let m = self.margin;
+        let x0 = r.x0.saturating_sub(m);
+        let y0 = r.y0.saturating_sub(m);
+        let want = (x0, y0, (r.x1 + m).min(s.width) - x0, (r.y1 + m).min(s.height) - y0);
+        let got = (acc.x0, acc.y0, acc.width, acc.height);
+        if got != want {
+            return Err(format!(
+                "partial covers {}x{} at ({}, {}); chunk {chunk} needs {}x{} at ({}, {})",
+                got.2, got.3, got.0, got.1, want.2, want.3, want.0, want.1
+            ));
+        }
+        let expected = r.samples();
+        if acc.sample_count() != expected {
+            return Err(format!(
+                "partial holds {} samples; chunk {chunk} has {expected}",
+                acc.sample_count()
+            ));
+        }
+        Ok(())
+    }
+
+    /// Moves a stored file that cannot be used aside (into the job's `quarantine/`), logs it
+    /// and records it in the job's errors: the chunks it held are rendered again.
+    fn quarantine(&mut self, data: &Path, file: &Path, why: &str) {
+        let dir = self.dir(data).join("quarantine");
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let moved = std::fs::create_dir_all(&dir).and_then(|_| std::fs::rename(file, dir.join(&name)));
+        let e = format!("stored {name} was unusable ({why}); moved to quarantine/, its chunks render again");
+        tracing::error!(job = %self.id, "{e}");
+        if let Err(m) = moved {
+            tracing::error!(job = %self.id, "cannot move {} aside: {m}", file.display());
+            std::fs::remove_file(file).ok();
+        }
+        self.errors.push(e);
+    }
+
     fn samples_total(&self) -> u64 {
         let s = &self.spec.settings;
         s.width as u64 * s.height as u64 * s.spp
@@ -323,11 +364,21 @@ impl Coordinator {
             rows.collect::<Result<_, _>>()?
         };
         for (id, spec, state, created) in rows {
-            let spec: JobSpec = serde_json::from_str(&spec)
-                .map_err(|e| CoordError::Internal(format!("job {id}: stored spec unreadable: {e}")))?;
-            let state: JobState = serde_json::from_value(serde_json::Value::String(state))
-                .map_err(|e| CoordError::Internal(format!("job {id}: stored state unreadable: {e}")))?;
-            let mut job = c.restore_job(id.clone(), spec, state, created as u64)?;
+            // One job that cannot be restored is logged and left out; the others go on.
+            let restored = serde_json::from_str::<JobSpec>(&spec)
+                .map_err(|e| CoordError::Internal(format!("stored spec unreadable: {e}")))
+                .and_then(|spec| {
+                    let state: JobState = serde_json::from_value(serde_json::Value::String(state))
+                        .map_err(|e| CoordError::Internal(format!("stored state unreadable: {e}")))?;
+                    Ok((c.restore_job(id.clone(), spec, state, created as u64)?, state))
+                });
+            let (mut job, state) = match restored {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::error!(job = %id, "cannot restore this job, left out until the next start: {e}");
+                    continue;
+                }
+            };
             // Every chunk merged but the end not recorded (a crash or failure while writing
             // the final checkpoint): finish it now.
             let open = !matches!(state, JobState::Done | JobState::Cancelled);
@@ -336,7 +387,10 @@ impl Coordinator {
             if let Some(s) = snap {
                 let result = s.write();
                 c.checkpoint_written(&s, &result);
-                result?;
+                if let Err(e) = result {
+                    // The job stays open; its next merge or the next start writes it again.
+                    tracing::error!(job = %s.job, "cannot write the final checkpoint: {e}");
+                }
             }
         }
         Ok(c)
@@ -489,13 +543,40 @@ impl Coordinator {
     ) -> Result<Job, CoordError> {
         let mut job = self.new_job(id, spec, state, created)?;
         let dir = job.dir(&self.data);
-        if let Ok(bytes) = std::fs::read(dir.join("checkpoint")) {
-            let (ids, skipped, acc) = decode_checkpoint(&bytes, self.max_partial.max(1 << 30))
-                .map_err(|e| CoordError::Internal(format!("job {}: checkpoint: {e}", job.id)))?;
-            job.accum = acc;
-            job.merged = ids.iter().copied().collect();
-            job.skipped = skipped.into_iter().collect();
-            job.checkpointed = job.merged.clone();
+        // Temporary files of writes a crash interrupted.
+        for d in [dir.clone(), dir.join("partials")] {
+            for e in std::fs::read_dir(d).into_iter().flatten().flatten() {
+                if e.file_name().to_string_lossy().ends_with(".tmp") {
+                    std::fs::remove_file(e.path()).ok();
+                }
+            }
+        }
+        let checkpoint = dir.join("checkpoint");
+        if let Ok(bytes) = std::fs::read(&checkpoint) {
+            let n = job.plan.len();
+            let checked =
+                decode_checkpoint(&bytes, self.max_partial.max(1 << 30)).and_then(|(ids, skipped, acc)| {
+                    let a = &job.accum;
+                    if (acc.x0, acc.y0, acc.width, acc.height) != (a.x0, a.y0, a.width, a.height) {
+                        return Err(format!(
+                            "it covers {}x{}, the job {}x{}",
+                            acc.width, acc.height, a.width, a.height
+                        ));
+                    }
+                    match ids.iter().chain(&skipped).find(|&&c| c as usize >= n) {
+                        Some(c) => Err(format!("it names chunk {c} of {n}")),
+                        None => Ok((ids, skipped, acc)),
+                    }
+                });
+            match checked {
+                Ok((ids, skipped, acc)) => {
+                    job.accum = acc;
+                    job.merged = ids.iter().copied().collect();
+                    job.skipped = skipped.into_iter().collect();
+                    job.checkpointed = job.merged.clone();
+                }
+                Err(e) => job.quarantine(&self.data, &checkpoint, &e),
+            }
         }
         if let Ok(entries) = std::fs::read_dir(dir.join("partials")) {
             let mut files: Vec<(u32, PathBuf)> = entries
@@ -513,8 +594,16 @@ impl Coordinator {
                     continue;
                 }
                 let bytes = std::fs::read(&path)?;
-                let acc = decode_partial(&bytes, self.max_partial)
-                    .map_err(|e| CoordError::Internal(format!("job {}: stored partial {id}: {e}", job.id)))?;
+                let acc = match decode_partial(&bytes, self.max_partial)
+                    .map_err(|e| e.to_string())
+                    .and_then(|acc| job.fits(id, &acc).map(|_| acc))
+                {
+                    Ok(acc) => acc,
+                    Err(e) => {
+                        job.quarantine(&self.data, &path, &e);
+                        continue;
+                    }
+                };
                 job.accum.merge(&acc);
                 job.merged.insert(id);
                 job.follow_up(id, &acc);
@@ -742,26 +831,7 @@ impl Coordinator {
     ) -> Result<Option<PathBuf>, CoordError> {
         let (data, persist) = (self.data.clone(), self.persist);
         let j = self.leased(job, chunk, epoch)?;
-        let s = &j.spec.settings;
-        let r = &j.plan[chunk as usize].region;
-        let m = j.margin;
-        let x0 = r.x0.saturating_sub(m);
-        let y0 = r.y0.saturating_sub(m);
-        let want = (x0, y0, (r.x1 + m).min(s.width) - x0, (r.y1 + m).min(s.height) - y0);
-        let got = (acc.x0, acc.y0, acc.width, acc.height);
-        if got != want {
-            return Err(CoordError::BadRequest(format!(
-                "partial covers {}x{} at ({}, {}); chunk {chunk} needs {}x{} at ({}, {})",
-                got.2, got.3, got.0, got.1, want.2, want.3, want.0, want.1
-            )));
-        }
-        let expected = r.samples();
-        if acc.sample_count() != expected {
-            return Err(CoordError::BadRequest(format!(
-                "partial holds {} samples; chunk {chunk} has {expected}",
-                acc.sample_count()
-            )));
-        }
+        j.fits(chunk, acc).map_err(CoordError::BadRequest)?;
         Ok(persist.then(|| j.dir(&data).join("partials").join(format!("{chunk}.zst"))))
     }
 
@@ -1084,8 +1154,8 @@ struct CheckpointHeader {
 fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Vec<u32>, Accum), String> {
     let n =
         u64::from_le_bytes(bytes.get(..8).ok_or("truncated")?.try_into().map_err(|_| "truncated")?) as usize;
-    let header = bytes.get(8..8 + n).ok_or("truncated header")?;
-    let h: CheckpointHeader = serde_json::from_slice(header).map_err(|e| e.to_string())?;
-    let acc = decode_partial(&bytes[8 + n..], max).map_err(|e| e.to_string())?;
+    let end = n.checked_add(8).filter(|&e| e <= bytes.len()).ok_or("truncated header")?;
+    let h: CheckpointHeader = serde_json::from_slice(&bytes[8..end]).map_err(|e| e.to_string())?;
+    let acc = decode_partial(&bytes[end..], max).map_err(|e| e.to_string())?;
     Ok((h.merged, h.skipped, acc))
 }
