@@ -158,6 +158,9 @@ fn stop_on_signal(flag: Arc<AtomicBool>) {
 }
 
 pub fn serve(a: ServeArgs) -> Result<()> {
+    if a.token.as_deref().is_some_and(|t| t.trim().is_empty() || t.trim() != t) {
+        bail!("the token must not be empty or have spaces around it (--token or FURNACE_TOKEN)");
+    }
     if !a.bind.ip().is_loopback() && a.token.is_none() {
         bail!("binding to {} (not loopback) needs a shared token: --token or FURNACE_TOKEN", a.bind);
     }

@@ -289,6 +289,23 @@ fn the_token_is_required_when_set_and_off_loopback() {
         http.get(format!("{url}/v1/jobs")).bearer_auth("s3cret").send().unwrap().status().as_u16(),
         200
     );
+    // The scheme is case-insensitive; a token's prefix or an empty one is not the token.
+    for (header, code) in
+        [("bearer s3cret", 200), ("BEARER s3cret", 200), ("Bearer s3c", 401), ("Bearer ", 401)]
+    {
+        let r = http.get(format!("{url}/v1/jobs")).header("authorization", header).send().unwrap();
+        assert_eq!(r.status().as_u16(), code, "{header}");
+    }
+    // An empty or blank token is refused at start.
+    for blank in ["", "  "] {
+        let out = Command::new(BIN)
+            .args(["serve", "--bind", "127.0.0.1:0", "--token", blank, "--data-dir"])
+            .arg(dir.join("data3"))
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        assert!(String::from_utf8_lossy(&out.stderr).contains("must not be empty"), "{blank:?}");
+    }
     let out = Command::new(BIN)
         .args(["serve", "--bind", "0.0.0.0:0", "--data-dir"])
         .arg(dir.join("data2"))

@@ -277,8 +277,12 @@ async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
             .headers()
             .get(header::AUTHORIZATION)
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "))
-            .is_some_and(|t| t == token);
+            .and_then(|v| v.split_once(' '))
+            // The scheme is case-insensitive (RFC 9110 11.1); hashes compare in constant time.
+            .is_some_and(|(scheme, t)| {
+                scheme.eq_ignore_ascii_case("bearer")
+                    && blake3::hash(t.as_bytes()) == blake3::hash(token.as_bytes())
+            });
         if !ok {
             return error(StatusCode::UNAUTHORIZED, "missing or wrong token (Authorization: Bearer ...)");
         }

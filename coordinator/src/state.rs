@@ -30,6 +30,9 @@ const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS jobs (
     CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);";
 /// Failures of one worker on one job after which it gets no more of that job's chunks.
 pub const MAX_FAILURES_PER_WORKER: u32 = 3;
+/// Errors a job keeps for its status (the most recent), and the longest kept, in bytes.
+pub const MAX_ERRORS: usize = 100;
+pub const MAX_ERROR_BYTES: usize = 2048;
 
 #[derive(Debug, thiserror::Error)]
 pub enum CoordError {
@@ -142,6 +145,23 @@ impl Job {
         Ok(())
     }
 
+    /// Records an error for the job's status: at most [`MAX_ERROR_BYTES`] of it, and only the
+    /// [`MAX_ERRORS`] most recent.
+    fn record_error(&mut self, mut e: String) {
+        if e.len() > MAX_ERROR_BYTES {
+            let mut end = MAX_ERROR_BYTES;
+            while !e.is_char_boundary(end) {
+                end -= 1;
+            }
+            e.truncate(end);
+            e.push_str(" [cut]");
+        }
+        if self.errors.len() == MAX_ERRORS {
+            self.errors.remove(0);
+        }
+        self.errors.push(e);
+    }
+
     /// Moves a stored file that cannot be used aside (into the job's `quarantine/`), logs it
     /// and records it in the job's errors: the chunks it held are rendered again.
     fn quarantine(&mut self, data: &Path, file: &Path, why: &str) {
@@ -154,7 +174,7 @@ impl Job {
             tracing::error!(job = %self.id, "cannot move {} aside: {m}", file.display());
             std::fs::remove_file(file).ok();
         }
-        self.errors.push(e);
+        self.record_error(e);
     }
 
     fn samples_total(&self) -> u64 {
@@ -701,6 +721,13 @@ impl Coordinator {
                 return Err(CoordError::BadRequest(format!("unknown action '{a}' (cancel, pause, resume)")))
             }
         };
+        if next == JobState::Cancelled {
+            // Revoked: uploads, heartbeats and failure reports of these leases are refused.
+            let j = self.job_mut(id)?;
+            for c in j.chunks.iter_mut().filter(|c| matches!(c, ChunkState::Leased { .. })) {
+                *c = ChunkState::Pending;
+            }
+        }
         self.set_state(id, next)
     }
 
@@ -736,13 +763,13 @@ impl Coordinator {
     pub fn lease(&mut self, worker: &str, now: Instant) -> Option<Lease> {
         self.expire_leases(now);
         self.seen(worker, now);
-        let mut order: Vec<(i32, u64, String)> = self
+        let mut order: Vec<(std::cmp::Reverse<i32>, u64, String)> = self
             .jobs
             .values()
             .filter(|j| matches!(j.state, JobState::Queued | JobState::Running))
             .filter(|j| j.failures.get(worker).copied().unwrap_or(0) < MAX_FAILURES_PER_WORKER)
             .filter(|j| !j.queue.is_empty())
-            .map(|j| (-j.spec.settings.priority, j.created, j.id.clone()))
+            .map(|j| (std::cmp::Reverse(j.spec.settings.priority), j.created, j.id.clone()))
             .collect();
         order.sort();
         let (_, _, id) = order.into_iter().next()?;
@@ -772,6 +799,9 @@ impl Coordinator {
 
     fn leased(&mut self, job: &str, chunk: u32, epoch: u64) -> Result<&mut Job, CoordError> {
         let j = self.job_mut(job)?;
+        if j.state == JobState::Cancelled {
+            return Err(CoordError::Conflict(format!("job {job} is cancelled: its leases are revoked")));
+        }
         let c = j
             .chunks
             .get(chunk as usize)
@@ -809,9 +839,10 @@ impl Coordinator {
         };
         let n = j.failures.entry(worker.clone()).or_insert(0);
         *n += 1;
-        j.errors.push(format!("worker {worker}, chunk {chunk}: {error}"));
-        if *n == MAX_FAILURES_PER_WORKER {
-            j.errors.push(format!("worker {worker} failed {n} times and gets no more of this job"));
+        let n = *n;
+        j.record_error(format!("worker {worker}, chunk {chunk}: {error}"));
+        if n == MAX_FAILURES_PER_WORKER {
+            j.record_error(format!("worker {worker} failed {n} times and gets no more of this job"));
         }
         j.chunks[chunk as usize] = ChunkState::Pending;
         j.queue.push_front(chunk);
@@ -967,7 +998,7 @@ impl Coordinator {
         let j = self.jobs.get_mut(&snap.job)?;
         j.checkpointing = false;
         if let Err(e) = result {
-            j.errors.push(format!("checkpoint failed: {e}"));
+            j.record_error(format!("checkpoint failed: {e}"));
             return None;
         }
         j.checkpointed.extend(&snap.ids);
@@ -1158,4 +1189,81 @@ fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Vec<u32>, Ac
     let h: CheckpointHeader = serde_json::from_slice(&bytes[8..end]).map_err(|e| e.to_string())?;
     let acc = decode_partial(&bytes[end..], max).map_err(|e| e.to_string())?;
     Ok((h.merged, h.skipped, acc))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny_scene() -> Arc<Scene> {
+        let xml = r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
+            <transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/></film>
+            </sensor><emitter type="constant"/></scene>"#;
+        Arc::new(Scene::load_str(xml, Path::new("tiny.xml"), &[]).unwrap())
+    }
+
+    fn submit(c: &mut Coordinator, priority: i32) -> String {
+        let settings = JobSettings {
+            width: 0,
+            height: 0,
+            spp: 4,
+            tile_size: 4,
+            spp_per_chunk: 1,
+            priority,
+            ..Default::default()
+        };
+        c.submit_scene(tiny_scene(), settings).unwrap()
+    }
+
+    /// Issue 14: the priority was negated to sort, so i32::MIN overflowed and went first.
+    #[test]
+    fn the_highest_priority_goes_first_at_the_extremes() {
+        let mut c = Coordinator::ephemeral().unwrap();
+        let low = submit(&mut c, i32::MIN);
+        let high = submit(&mut c, i32::MAX);
+        let now = Instant::now();
+        assert_eq!(c.lease("w", now).unwrap().job, high);
+        c.set_priority(&high, i32::MIN + 1).unwrap();
+        assert_eq!(c.lease("w", now).unwrap().job, high);
+        c.set_priority(&low, 0).unwrap();
+        assert_eq!(c.lease("w", now).unwrap().job, low);
+    }
+
+    /// Issue 14: six 20 MiB failure messages made every status response 120 MiB. (2 MiB here.)
+    #[test]
+    fn failure_messages_are_cut_and_only_the_latest_kept() {
+        let mut c = Coordinator::ephemeral().unwrap();
+        let job = submit(&mut c, 0);
+        let huge = "é".repeat(1 << 20);
+        for k in 0..MAX_ERRORS + 20 {
+            let l = c.lease(&format!("w{k}"), Instant::now()).unwrap();
+            c.fail(&job, l.chunk.id, l.epoch, &huge).unwrap();
+        }
+        let s = c.status(&job).unwrap();
+        assert_eq!(s.errors.len(), MAX_ERRORS);
+        assert!(s.errors.iter().all(|e| e.len() <= MAX_ERROR_BYTES + 6 && e.ends_with("[cut]")));
+        assert!(s.errors[MAX_ERRORS - 1].starts_with(&format!("worker w{}", MAX_ERRORS + 19)));
+    }
+
+    /// Issue 14: an upload in flight when a job was cancelled turned it into done.
+    #[test]
+    fn cancel_revokes_the_leases_in_flight() {
+        let mut c = Coordinator::ephemeral().unwrap();
+        let job = submit(&mut c, 0);
+        let leases: Vec<_> = std::iter::from_fn(|| c.lease("w", Instant::now())).collect();
+        assert_eq!(leases.len(), 4);
+        c.control(&job, "cancel").unwrap();
+        assert_eq!(c.status(&job).unwrap().chunks_leased, 0);
+        let coord = Mutex::new(c);
+        let scene = tiny_scene();
+        for l in &leases {
+            let acc = furnace_core::render_region(&scene, &l.chunk.region, 0).0;
+            let e = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None).unwrap_err();
+            assert!(matches!(&e, CoordError::Conflict(m) if m.contains("cancelled")), "{e:?}");
+        }
+        let c = coord.lock().unwrap();
+        assert_eq!(c.status(&job).unwrap().state, JobState::Cancelled);
+        assert_eq!(c.status(&job).unwrap().chunks_done, 0);
+    }
 }
