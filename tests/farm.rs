@@ -212,9 +212,9 @@ fn corrupt_stored_files_are_quarantined_and_their_chunks_render_again() {
     let coord = open_coordinator(&data);
     coord.lock().unwrap().checkpoint_interval = std::time::Duration::from_secs(3600);
     let job = submit_small(&coord, &scene, settings.clone());
-    let other = submit_small(&coord, &scene, JobSettings { seed: 6, ..settings.clone() });
+    let other = submit_small(&coord, &scene, JobSettings { seed: 6, priority: -1, ..settings.clone() });
     let job_dir = data.join("jobs").join(&job);
-    // Leases alternate between the two jobs; 24 uploads leave partials of both on disk.
+    // 24 of the first job's 60 chunks: their partials are on disk, no checkpoint yet.
     assert_eq!(render_leases(&coord, &scene, 24), 24);
     drop(coord);
     let partials = job_dir.join("partials");
