@@ -92,24 +92,7 @@ fn too_bright_samples_are_dropped_counted_and_the_job_finishes_with_the_same_byt
 fn infinite_samples_are_dropped_and_counted_as_infinite() {
     // 3.4e38 survives parsing (it is a float) but overflows when light sampling divides by
     // the pdf of a large light.
-    let big_light = load_str(
-        r#"<scene version="3.0.0">
-        <sensor type="perspective">
-            <float name="fov" value="60"/>
-            <transform name="to_world"><lookat origin="0, 2, 3" target="0, 0, 0"/></transform>
-            <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/></film>
-        </sensor>
-        <shape type="rectangle">
-            <transform name="to_world"><scale value="3"/><rotate x="1" angle="-90"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.9"/></bsdf>
-        </shape>
-        <shape type="rectangle">
-            <transform name="to_world"><scale value="2"/><rotate x="1" angle="90"/><translate y="1"/></transform>
-            <emitter type="area"><rgb name="radiance" value="3.4e38"/></emitter>
-        </shape>
-    </scene>"#,
-    )
-    .unwrap();
+    let big_light = common::load("overflowing_light.xml", &[("width", "24")]);
     let (st, img) = farm(big_light, settings(8, 16, 4), 2);
     assert_eq!(st.state, JobState::Done, "{:?}", st.errors);
     assert!(st.dropped_samples.infinite > 0, "{:?}", st.dropped_samples);

@@ -175,24 +175,7 @@ fn stages_absent_from_the_plan_never_run() {
 
 #[test]
 fn nonfinite_and_overflowing_samples_are_dropped_counted_and_never_reach_the_film() {
-    // A light at the edge of f32's range: light-sampled contributions overflow to infinity.
-    let xml = r#"<scene version="3.0.0">
-        <sensor type="perspective">
-            <float name="fov" value="60"/>
-            <transform name="to_world"><lookat origin="0, 2, 3" target="0, 0, 0"/></transform>
-            <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
-            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
-        </sensor>
-        <shape type="rectangle">
-            <transform name="to_world"><scale value="3"/><rotate x="1" angle="-90"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.9"/></bsdf>
-        </shape>
-        <shape type="rectangle">
-            <transform name="to_world"><scale value="2"/><rotate x="1" angle="90"/><translate y="1"/></transform>
-            <emitter type="area"><rgb name="radiance" value="3.4e38"/></emitter>
-        </shape>
-    </scene>"#;
-    let s = load_str(xml).unwrap();
+    let s = load("overflowing_light.xml", &[]);
     let (acc, st) = render(&s, 4, 0);
     assert!(acc.dropped.infinite > 0, "expected overflowing samples: {}", acc.dropped);
     // Dropped samples count as generated: a chunk's count covers every sample rendered.
