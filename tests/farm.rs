@@ -275,3 +275,80 @@ fn corrupt_stored_files_are_quarantined_and_their_chunks_render_again() {
     drop(c);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Stores `files` (path, bytes) in the coordinator and returns their bundle.
+fn store_bundle(coord: &Mutex<Coordinator>, scene: &str, files: &[(&str, &[u8])]) -> Bundle {
+    let mut bundle = Bundle { scene: scene.into(), files: Default::default() };
+    for (path, bytes) in files {
+        let hash = blake3::hash(bytes).to_hex().to_string();
+        std::fs::write(coord.lock().unwrap().file_path(&hash), bytes).unwrap();
+        bundle.files.insert(path.to_string(), hash);
+    }
+    bundle
+}
+
+/// Issue 14: scenes were parsed under the coordinator's one lock (a 6.5 MB scene froze the
+/// server for 9 minutes). Now the lock is free while a large scene loads, and a submission
+/// that fails leaves nothing on disk.
+#[test]
+fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
+    let dir = scratch("coord-submit");
+    let coord = std::sync::Arc::new(open_coordinator(&dir.join("data")));
+    let mut xml = String::from(
+        r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
+        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>"#,
+    );
+    for i in 0..40_000 {
+        xml.push_str(&format!(
+            "<shape type=\"sphere\"><point name=\"center\" x=\"{}\" y=\"{}\" z=\"-5\"/><float name=\"radius\" value=\"0.3\"/></shape>\n",
+            i % 200,
+            i / 200
+        ));
+    }
+    xml.push_str("</scene>");
+    let bundle = store_bundle(&coord, "big.xml", &[("big.xml", xml.as_bytes())]);
+    let spec =
+        JobSpec { bundle, settings: JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() } };
+    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let submitter = {
+        let (coord, done) = (coord.clone(), done.clone());
+        std::thread::spawn(move || {
+            let t = Instant::now();
+            let r = furnace_coordinator::state::submit(&coord, spec, None);
+            done.store(true, std::sync::atomic::Ordering::SeqCst);
+            (r, t.elapsed())
+        })
+    };
+    // While it loads, the lock is taken over and over, never waited on for long.
+    let (mut taken, mut longest) = (0, std::time::Duration::ZERO);
+    while !done.load(std::sync::atomic::Ordering::SeqCst) {
+        let t = Instant::now();
+        drop(coord.lock().unwrap());
+        longest = longest.max(t.elapsed());
+        taken += 1;
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let (r, took) = submitter.join().unwrap();
+    r.unwrap();
+    assert!(
+        taken > 10 && longest < took / 4,
+        "lock taken {taken} times, longest wait {longest:?} of {took:?}"
+    );
+    // A scene that cannot be rendered: 422, and its bundle folder is gone again.
+    let bundles = || std::fs::read_dir(dir.join("data/bundles")).unwrap().count();
+    let before = bundles();
+    let bad = store_bundle(
+        &coord,
+        "a/bad.xml",
+        &[("a/bad.xml", b"<scene version=\"3.0.0\"><shape type=\"teapot\"/></scene>")],
+    );
+    let e = furnace_coordinator::state::submit(
+        &coord,
+        JobSpec { bundle: bad, settings: JobSettings::default() },
+        None,
+    )
+    .unwrap_err();
+    assert!(matches!(&e, CoordError::Unprocessable(m) if m.contains("teapot")), "{e:?}");
+    assert_eq!(bundles(), before, "a failed submission left files behind");
+    std::fs::remove_dir_all(&dir).ok();
+}

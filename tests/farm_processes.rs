@@ -344,6 +344,12 @@ fn idempotency_pause_resume_failures_preview_events_and_cancel() {
     let id1: serde_json::Value = r1.json().unwrap();
     let id2: serde_json::Value = r2.json().unwrap();
     assert_eq!(id1["id"], id2["id"]);
+    // Keys that are empty, too long or not visible ASCII are refused, not ignored.
+    for key in ["".to_string(), "k".repeat(201), "ké".to_string()] {
+        let r =
+            http.post(format!("{url}/v1/jobs")).header("Idempotency-Key", key.as_bytes()).json(&spec).send();
+        assert_eq!(r.unwrap().status().as_u16(), 400, "{key:?}");
+    }
     http.post(format!("{url}/v1/jobs/{}/cancel", id1["id"].as_str().unwrap())).send().unwrap();
 
     let lease = |w: &str| -> Option<Lease> {

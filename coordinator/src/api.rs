@@ -26,13 +26,25 @@ pub struct AppState {
     pub token: Option<String>,
     /// Wakes lease requests held open for work: signalled when work may have appeared.
     work: Arc<Notify>,
+    /// Submissions whose scenes load at once; the others wait their turn.
+    loads: Arc<tokio::sync::Semaphore>,
 }
+
+/// Scenes loaded at once (each may take a core and much memory while it loads).
+pub const CONCURRENT_LOADS: usize = 2;
+/// The longest idempotency key, in bytes.
+pub const MAX_IDEMPOTENCY_KEY: usize = 200;
 
 impl AppState {
     /// Also installs the process's Prometheus recorder, once: metrics are recorded from here on.
     pub fn new(coord: Arc<Mutex<Coordinator>>, token: Option<String>) -> AppState {
         prometheus();
-        AppState { coord, token, work: Arc::new(Notify::new()) }
+        AppState {
+            coord,
+            token,
+            work: Arc::new(Notify::new()),
+            loads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_LOADS)),
+        }
     }
 
     /// Tells waiting lease requests to look again.
@@ -332,13 +344,20 @@ async fn get_bundle(State(s): State<AppState>, Path(hash): Path<String>) -> ApiR
 
 async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) -> ApiResult {
     let spec: JobSpec = json_body(&body, "job spec")?;
-    let key = headers.get("idempotency-key").and_then(|v| v.to_str().ok()).map(String::from);
+    let key = match headers.get("idempotency-key") {
+        None => None,
+        Some(v) => {
+            let k = v.to_str().ok().filter(|k| !k.is_empty() && k.len() <= MAX_IDEMPOTENCY_KEY);
+            let e = || format!("an Idempotency-Key has 1 to {MAX_IDEMPOTENCY_KEY} visible ASCII characters");
+            Some(k.ok_or_else(|| CoordError::BadRequest(e()))?.to_string())
+        }
+    };
     let coord = s.coord.clone();
-    let (id, created) = tokio::task::spawn_blocking(move || {
-        coord.lock().unwrap_or_else(|e| e.into_inner()).submit(spec, key.as_deref())
-    })
-    .await
-    .map_err(|e| CoordError::Internal(e.to_string()))??;
+    let _turn = s.loads.acquire().await.map_err(|e| CoordError::Internal(e.to_string()))?;
+    let (id, created) =
+        tokio::task::spawn_blocking(move || crate::state::submit(&coord, spec, key.as_deref()))
+            .await
+            .map_err(|e| CoordError::Internal(e.to_string()))??;
     s.new_work();
     let status = if created { StatusCode::CREATED } else { StatusCode::OK };
     Ok((status, Json(serde_json::json!({"id": id}))).into_response())

@@ -352,6 +352,155 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     Ok(())
 }
 
+/// What loading a job's scene needs of the coordinator, taken out of it so that scenes are
+/// loaded, validated and planned without its lock.
+struct Loader {
+    data: PathBuf,
+    keep_scenes: bool,
+}
+
+impl Loader {
+    /// A new job for a submitted spec: its bundle laid out, its scene loaded and checked.
+    fn submitted(&self, spec: JobSpec, key: Option<&str>) -> Result<Job, CoordError> {
+        static SUBMISSIONS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let created = now_secs();
+        let n = SUBMISSIONS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos());
+        let seed = format!("{}-{nanos:?}-{key:?}-{n}-{}", spec.bundle.hash(), std::process::id());
+        let id = blake3::hash(seed.as_bytes()).to_hex()[..16].to_string();
+        self.new_job(id, spec, JobState::Queued, created)
+    }
+
+    fn file_path(&self, hash: &str) -> PathBuf {
+        self.data.join("files").join(hash)
+    }
+
+    fn bundle_dir(&self, bundle_hash: &str) -> PathBuf {
+        self.data.join("bundles").join(bundle_hash)
+    }
+
+    /// Lays the bundle's files out under `bundles/{hash}/` (once) and loads its scene.
+    fn load_bundle(&self, spec: &JobSpec) -> Result<(PathBuf, Scene), CoordError> {
+        let b = &spec.bundle;
+        b.validate().map_err(CoordError::BadRequest)?;
+        let missing: Vec<&str> =
+            b.files.iter().filter(|(_, h)| !self.file_path(h).exists()).map(|(p, _)| p.as_str()).collect();
+        if !missing.is_empty() {
+            return Err(CoordError::BadRequest(format!(
+                "bundle files not uploaded yet: {} (PUT /v1/files/{{hash}} first)",
+                missing.join(", ")
+            )));
+        }
+        let hash = b.hash();
+        let dir = self.bundle_dir(&hash);
+        let manifest = self.data.join("bundles").join(format!("{hash}.json"));
+        let new = !dir.exists();
+        let laid_out = self.lay_out(b, &dir, &manifest).and_then(|_| {
+            Scene::load(&dir.join(&b.scene), &[])
+                .map_err(|e| CoordError::Unprocessable(format!("the scene cannot be rendered: {e}")))
+        });
+        if laid_out.is_err() && new {
+            // Nothing is left behind by a submission that fails.
+            std::fs::remove_dir_all(&dir).ok();
+            std::fs::remove_file(&manifest).ok();
+        }
+        Ok((dir, laid_out?))
+    }
+
+    /// The bundle's files under their paths in `dir`: hard links to the stored files (copies
+    /// where links cannot be made), each made once.
+    fn lay_out(&self, b: &Bundle, dir: &Path, manifest: &Path) -> Result<(), CoordError> {
+        for (path, h) in &b.files {
+            let dst = dir.join(path);
+            if dst.exists() {
+                continue;
+            }
+            let made = dst.parent().map_or(Ok(()), std::fs::create_dir_all).and_then(|_| {
+                std::fs::hard_link(self.file_path(h), &dst)
+                    .or_else(|_| std::fs::copy(self.file_path(h), &dst).map(|_| ()))
+            });
+            made.map_err(|e| {
+                CoordError::BadRequest(format!("bundle path '{path}' cannot be laid out: {e}"))
+            })?;
+        }
+        std::fs::write(manifest, serde_json::to_vec(b).unwrap_or_default())?;
+        Ok(())
+    }
+
+    fn new_job(&self, id: String, spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
+        let (_, scene) = self.load_bundle(&spec)?;
+        self.job_from_scene(id, spec, state, created, Arc::new(scene))
+    }
+
+    fn job_from_scene(
+        &self,
+        id: String,
+        mut spec: JobSpec,
+        state: JobState,
+        created: u64,
+        scene: Arc<Scene>,
+    ) -> Result<Job, CoordError> {
+        let s = &mut spec.settings;
+        let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+        if s.width == 0 && s.height == 0 {
+            (s.width, s.height) = (w, h);
+        }
+        if (s.width, s.height) != (w, h) {
+            return Err(CoordError::Unprocessable(format!(
+                "job size {}x{} differs from the scene's film {w}x{h}",
+                s.width, s.height
+            )));
+        }
+        if s.spp == 0 {
+            s.spp = scene.spp as u64;
+        }
+        s.check_limits().map_err(CoordError::Unprocessable)?;
+        if let Some(t) = s.target_rel_error {
+            if !(t.is_finite() && t > 0.0) {
+                return Err(CoordError::BadRequest(format!("target_rel_error must be positive, got {t}")));
+            }
+            if s.spp_per_chunk < 2 {
+                return Err(CoordError::BadRequest(
+                    "a noise-target job needs spp_per_chunk >= 2 (error is estimated from each chunk's samples)"
+                        .into(),
+                ));
+            }
+        }
+        let plan = chunk_plan(s);
+        let n = plan.len();
+        // Noise-target jobs hand out a tile's next pass only once its last one is judged.
+        let first = if s.target_rel_error.is_some() { (s.tiles() as usize).min(n) } else { n };
+        let tiles = s.tiles() as usize;
+        Ok(Job {
+            id,
+            bundle_hash: spec.bundle.hash(),
+            accum: Accum::new(0, 0, w, h),
+            margin: scene.film.filter.margin(),
+            render_plan: scene.plan.to_string(),
+            spec,
+            state,
+            chunks: vec![ChunkState::Pending; n],
+            queue: (0..first as u32).collect(),
+            plan,
+            merged: HashSet::new(),
+            skipped: HashSet::new(),
+            tile_est: vec![f64::NAN; tiles],
+            est_cache: std::cell::Cell::new(None),
+            checkpointed: HashSet::new(),
+            since_checkpoint: 0,
+            checkpointing: false,
+            last_checkpoint: Instant::now(),
+            failures: HashMap::new(),
+            errors: Vec::new(),
+            workers: BTreeMap::new(),
+            recent: VecDeque::new(),
+            samples_done: 0,
+            created,
+            scene: self.keep_scenes.then_some(scene),
+        })
+    }
+}
+
 impl Coordinator {
     /// Opens (or creates) the data directory and resumes every unfinished job.
     pub fn open(data: &Path) -> Result<Coordinator, CoordError> {
@@ -441,116 +590,17 @@ impl Coordinator {
 
     /// Path of a stored file by hash.
     pub fn file_path(&self, hash: &str) -> PathBuf {
-        self.data.join("files").join(hash)
+        self.loader().file_path(hash)
     }
 
-    fn bundle_dir(&self, bundle_hash: &str) -> PathBuf {
-        self.data.join("bundles").join(bundle_hash)
+    fn loader(&self) -> Loader {
+        Loader { data: self.data.clone(), keep_scenes: self.keep_scenes }
     }
 
-    /// Lays the bundle's files out under `bundles/{hash}/` (once) and loads its scene.
-    fn load_bundle(&self, spec: &JobSpec) -> Result<(PathBuf, Scene), CoordError> {
-        let b = &spec.bundle;
-        b.validate().map_err(CoordError::BadRequest)?;
-        let missing: Vec<&str> =
-            b.files.iter().filter(|(_, h)| !self.file_path(h).exists()).map(|(p, _)| p.as_str()).collect();
-        if !missing.is_empty() {
-            return Err(CoordError::BadRequest(format!(
-                "bundle files not uploaded yet: {} (PUT /v1/files/{{hash}} first)",
-                missing.join(", ")
-            )));
-        }
-        let hash = b.hash();
-        let dir = self.bundle_dir(&hash);
-        for (path, h) in &b.files {
-            let dst = dir.join(path);
-            if !dst.exists() {
-                if let Some(parent) = dst.parent() {
-                    std::fs::create_dir_all(parent)?;
-                }
-                std::fs::copy(self.file_path(h), &dst)?;
-            }
-        }
-        std::fs::write(
-            self.data.join("bundles").join(format!("{hash}.json")),
-            serde_json::to_vec(b).unwrap_or_default(),
-        )?;
-        let scene = Scene::load(&dir.join(&b.scene), &[])
-            .map_err(|e| CoordError::Unprocessable(format!("the scene cannot be rendered: {e}")))?;
-        Ok((dir, scene))
-    }
-
-    fn new_job(&self, id: String, spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
-        let (_, scene) = self.load_bundle(&spec)?;
-        self.job_from_scene(id, spec, state, created, Arc::new(scene))
-    }
-
-    fn job_from_scene(
-        &self,
-        id: String,
-        mut spec: JobSpec,
-        state: JobState,
-        created: u64,
-        scene: Arc<Scene>,
-    ) -> Result<Job, CoordError> {
-        let s = &mut spec.settings;
-        let (w, h) = (scene.film.crop_width, scene.film.crop_height);
-        if s.width == 0 && s.height == 0 {
-            (s.width, s.height) = (w, h);
-        }
-        if (s.width, s.height) != (w, h) {
-            return Err(CoordError::Unprocessable(format!(
-                "job size {}x{} differs from the scene's film {w}x{h}",
-                s.width, s.height
-            )));
-        }
-        if s.spp == 0 {
-            s.spp = scene.spp as u64;
-        }
-        s.check_limits().map_err(CoordError::Unprocessable)?;
-        if let Some(t) = s.target_rel_error {
-            if !(t.is_finite() && t > 0.0) {
-                return Err(CoordError::BadRequest(format!("target_rel_error must be positive, got {t}")));
-            }
-            if s.spp_per_chunk < 2 {
-                return Err(CoordError::BadRequest(
-                    "a noise-target job needs spp_per_chunk >= 2 (error is estimated from each chunk's samples)"
-                        .into(),
-                ));
-            }
-        }
-        let plan = chunk_plan(s);
-        let n = plan.len();
-        // Noise-target jobs hand out a tile's next pass only once its last one is judged.
-        let first = if s.target_rel_error.is_some() { (s.tiles() as usize).min(n) } else { n };
-        let tiles = s.tiles() as usize;
-        Ok(Job {
-            id,
-            bundle_hash: spec.bundle.hash(),
-            accum: Accum::new(0, 0, w, h),
-            margin: scene.film.filter.margin(),
-            render_plan: scene.plan.to_string(),
-            spec,
-            state,
-            chunks: vec![ChunkState::Pending; n],
-            queue: (0..first as u32).collect(),
-            plan,
-            merged: HashSet::new(),
-            skipped: HashSet::new(),
-            tile_est: vec![f64::NAN; tiles],
-            est_cache: std::cell::Cell::new(None),
-            checkpointed: HashSet::new(),
-            since_checkpoint: 0,
-            checkpointing: false,
-            last_checkpoint: Instant::now(),
-            failures: HashMap::new(),
-            errors: Vec::new(),
-            workers: BTreeMap::new(),
-            recent: VecDeque::new(),
-            samples_done: 0,
-            created,
-            scene: self.keep_scenes.then_some(scene),
-        })
+    /// The job an idempotency key already names.
+    fn idempotent(&self, key: Option<&str>) -> Option<String> {
+        let k = key?;
+        self.db.query_row("SELECT id FROM jobs WHERE idempotency_key = ?1", [k], |r| r.get(0)).ok()
     }
 
     /// Rebuilds a job after a restart: checkpoint plus every partial not in it.
@@ -561,7 +611,7 @@ impl Coordinator {
         state: JobState,
         created: u64,
     ) -> Result<Job, CoordError> {
-        let mut job = self.new_job(id, spec, state, created)?;
+        let mut job = self.loader().new_job(id, spec, state, created)?;
         let dir = job.dir(&self.data);
         // Temporary files of writes a crash interrupted.
         for d in [dir.clone(), dir.join("partials")] {
@@ -653,19 +703,10 @@ impl Coordinator {
 
     /// Submits a job; with an idempotency key already used, returns that job instead.
     pub fn submit(&mut self, spec: JobSpec, key: Option<&str>) -> Result<(String, bool), CoordError> {
-        if let Some(k) = key {
-            let found: Option<String> =
-                self.db.query_row("SELECT id FROM jobs WHERE idempotency_key = ?1", [k], |r| r.get(0)).ok();
-            if let Some(id) = found {
-                return Ok((id, false));
-            }
+        if let Some(id) = self.idempotent(key) {
+            return Ok((id, false));
         }
-        let created = now_secs();
-        let id = {
-            let seed = format!("{}-{}-{:?}-{}", spec.bundle.hash(), created, key, self.jobs.len());
-            blake3::hash(seed.as_bytes()).to_hex()[..16].to_string()
-        };
-        let job = self.new_job(id.clone(), spec, JobState::Queued, created)?;
+        let job = self.loader().submitted(spec, key)?;
         self.insert_job(job, key)
     }
 
@@ -675,7 +716,8 @@ impl Coordinator {
         let created = now_secs();
         let id = format!("local-{}", self.jobs.len());
         let spec = JobSpec { bundle: Bundle { scene: String::new(), files: BTreeMap::new() }, settings };
-        let mut job = self.job_from_scene(id.clone(), spec, JobState::Queued, created, scene.clone())?;
+        let mut job =
+            self.loader().job_from_scene(id.clone(), spec, JobState::Queued, created, scene.clone())?;
         job.scene = Some(scene);
         self.jobs.insert(id.clone(), job);
         Ok(id)
@@ -1108,6 +1150,31 @@ pub fn accept_partial(
         result?;
     }
     Ok(())
+}
+
+/// Submits a job, locking the coordinator only to look up the idempotency key and to insert
+/// the job: the bundle is laid out and the scene loaded, validated and planned without the
+/// lock, so leases, uploads and status go on meanwhile.
+pub fn submit(
+    coord: &Mutex<Coordinator>,
+    spec: JobSpec,
+    key: Option<&str>,
+) -> Result<(String, bool), CoordError> {
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let loader = {
+        let c = lock();
+        if let Some(id) = c.idempotent(key) {
+            return Ok((id, false));
+        }
+        c.loader()
+    };
+    let job = loader.submitted(spec, key)?;
+    let mut c = lock();
+    // A submission with the same key that finished meanwhile wins.
+    match c.idempotent(key) {
+        Some(id) => Ok((id, false)),
+        None => c.insert_job(job, key),
+    }
 }
 
 /// The first check of an upload, before its body is decoded: the chunk must be leased under

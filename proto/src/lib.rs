@@ -53,6 +53,9 @@ impl Default for JobSettings {
     }
 }
 
+/// The most files a bundle may hold.
+pub const MAX_BUNDLE_FILES: usize = 10_000;
+
 /// The most chunks one job may have (its plan and chunk states take about 100 bytes each).
 pub const MAX_CHUNKS: u64 = 1 << 20;
 /// The most samples per pixel one job may ask for.
@@ -167,7 +170,28 @@ impl Bundle {
         if !self.files.contains_key(&self.scene) {
             return Err(format!("the scene file '{}' is not among the bundle's files", self.scene));
         }
+        if self.files.len() > MAX_BUNDLE_FILES {
+            return Err(format!(
+                "a bundle holds at most {MAX_BUNDLE_FILES} files, this one {}",
+                self.files.len()
+            ));
+        }
         for (path, hash) in &self.files {
+            if path.len() > 1024
+                || path.split('/').any(|c| c.len() > 255)
+                || path.chars().any(char::is_control)
+            {
+                return Err(format!(
+                    "bundle path '{}' must be at most 1024 bytes, 255 a part, with no control characters",
+                    path.escape_debug()
+                ));
+            }
+            // A file at `a` and another at `a/b` cannot both be laid out.
+            let mut prefix = path.clone();
+            prefix.push('/');
+            if self.files.range(prefix.clone()..).next().is_some_and(|(p, _)| p.starts_with(&prefix)) {
+                return Err(format!("bundle path '{path}' is a file and a folder of another path"));
+            }
             let bad = path.is_empty()
                 || path.starts_with('/')
                 || path.contains('\\')
@@ -381,6 +405,25 @@ mod tests {
     fn settings_round_trip_with_defaults() {
         let s: JobSettings = serde_json_like("{}");
         assert_eq!(s, JobSettings::default());
+    }
+
+    #[test]
+    fn bundle_paths_that_cannot_be_laid_out_are_refused() {
+        let hash = "0".repeat(64);
+        let bundle = |paths: &[&str]| Bundle {
+            scene: paths[0].to_string(),
+            files: paths.iter().map(|p| (p.to_string(), hash.clone())).collect(),
+        };
+        assert!(bundle(&["s.xml", "tex/a.png", "tex/b.png"]).validate().is_ok());
+        for (paths, fragment) in [
+            (&["s.xml", "a", "a/b"][..], "is a file and a folder"),
+            (&["s.xml", "nul\0.png"][..], "no control characters"),
+            (&["s.xml", &"x".repeat(300)][..], "255 a part"),
+            (&["../s.xml"][..], "must be relative"),
+        ] {
+            let e = bundle(paths).validate().unwrap_err();
+            assert!(e.contains(fragment), "{paths:?}: {e}");
+        }
     }
 
     #[test]
