@@ -119,15 +119,22 @@ impl Job {
         data.join("jobs").join(&self.id)
     }
 
-    /// Checks that `acc` is a partial of `chunk`: its rectangle (the chunk's tile grown by the
-    /// filter margin) and its sample count.
-    fn fits(&self, chunk: u32, acc: &Accum) -> Result<(), String> {
+    /// A chunk's partial rectangle (x0, y0, width, height): its tile grown by the filter's
+    /// margin, clipped to the image.
+    fn window(&self, chunk: u32) -> (u32, u32, u32, u32) {
         let s = &self.spec.settings;
         let r = &self.plan[chunk as usize].region;
         let m = self.margin;
         let x0 = r.x0.saturating_sub(m);
         let y0 = r.y0.saturating_sub(m);
-        let want = (x0, y0, (r.x1 + m).min(s.width) - x0, (r.y1 + m).min(s.height) - y0);
+        (x0, y0, (r.x1 + m).min(s.width) - x0, (r.y1 + m).min(s.height) - y0)
+    }
+
+    /// Checks that `acc` is a partial of `chunk`: its rectangle (the chunk's tile grown by the
+    /// filter margin) and its sample count.
+    fn fits(&self, chunk: u32, acc: &Accum) -> Result<(), String> {
+        let r = &self.plan[chunk as usize].region;
+        let want = self.window(chunk);
         let got = (acc.x0, acc.y0, acc.width, acc.height);
         if got != want {
             return Err(format!(
@@ -1178,16 +1185,20 @@ pub fn submit(
 }
 
 /// The first check of an upload, before its body is decoded: the chunk must be leased under
-/// `epoch`. Returns the most bytes a partial may decompress to.
+/// `epoch`. Returns the most bytes its partial may decompress to.
 pub fn check_upload(
     coord: &Mutex<Coordinator>,
     job: &str,
     chunk: u32,
     epoch: u64,
 ) -> Result<usize, CoordError> {
-    let checked = coord.lock().unwrap_or_else(|e| e.into_inner()).leased(job, chunk, epoch).map(|_| ());
-    checked.inspect_err(|_| count_duplicate(coord, job, chunk))?;
-    Ok(coord.lock().unwrap_or_else(|e| e.into_inner()).max_partial)
+    let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
+    let max = c.max_partial;
+    let checked = c.leased(job, chunk, epoch).map(|j| j.window(chunk));
+    drop(c);
+    let (_, _, w, h) = checked.inspect_err(|_| count_duplicate(coord, job, chunk))?;
+    // No more than this chunk's partial can hold, however well the body compresses.
+    Ok(furnace_proto::partial_size_limit(w, h).min(max))
 }
 
 /// Counts a refused upload of a chunk that is already merged (a lease that expired while its

@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 pub mod fuzz;
 mod partial;
-pub use partial::{decode_partial, encode_partial, PartialError};
+pub use partial::{decode_partial, encode_partial, partial_size_limit, PartialError};
 
 /// The API's path prefix.
 pub const API: &str = "/v1";
