@@ -357,6 +357,26 @@ fn idempotency_pause_resume_failures_preview_events_and_cancel() {
     let id1: serde_json::Value = r1.json().unwrap();
     let id2: serde_json::Value = r2.json().unwrap();
     assert_eq!(id1["id"], id2["id"]);
+    // Settings left out are the scene's (the README's curl example gives only spp); an
+    // unknown field is refused, naming it.
+    let b = serde_json::to_value(&spec.bundle).unwrap();
+    let r = http
+        .post(format!("{url}/v1/jobs"))
+        .json(&serde_json::json!({"bundle": b, "settings": {"spp": 8}}))
+        .send();
+    let id: serde_json::Value = r.unwrap().json().unwrap();
+    let s = status(&url, id["id"].as_str().unwrap());
+    assert_eq!((s["settings"]["width"].as_u64(), s["settings"]["spp"].as_u64()), (Some(48), Some(8)), "{s}");
+    http.post(format!("{url}/v1/jobs/{}/cancel", id["id"].as_str().unwrap())).send().unwrap();
+    for typo in [
+        serde_json::json!({"bundle": b, "settings": {"sp": 8}}),
+        serde_json::json!({"bundle": b, "setting": {}}),
+    ] {
+        let r = http.post(format!("{url}/v1/jobs")).json(&typo).send().unwrap();
+        assert_eq!(r.status().as_u16(), 400);
+        let e: serde_json::Value = r.json().unwrap();
+        assert!(e["error"].as_str().unwrap().contains("unknown field"), "{e}");
+    }
     // Keys that are empty, too long or not visible ASCII are refused, not ignored.
     for key in ["".to_string(), "k".repeat(201), "ké".to_string()] {
         let r =

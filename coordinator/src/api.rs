@@ -455,6 +455,7 @@ async fn heartbeat(
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 struct Failure {
     epoch: u64,
     error: String,

@@ -20,14 +20,15 @@ pub use partial::{decode_partial, encode_partial, partial_size_limit, PartialErr
 /// The API's path prefix.
 pub const API: &str = "/v1";
 
-/// The render settings of a job (DESIGN.md defaults: 1920 x 1080 at 4096 spp, 64-pixel tiles,
-/// 64 spp per chunk).
+/// The render settings of a job. Left out (or 0), the size and the samples per pixel are the
+/// scene's (its film and its sampler's `sample_count`); tiles are 64 pixels, chunks 64 spp.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct JobSettings {
+    /// Image size; 0 x 0: the scene's film.
     pub width: u32,
     pub height: u32,
-    /// Samples per pixel; with `target_rel_error`, the most any pixel gets.
+    /// Samples per pixel (0: the scene's); with `target_rel_error`, the most any pixel gets.
     pub spp: u64,
     pub tile_size: u32,
     pub spp_per_chunk: u64,
@@ -41,9 +42,9 @@ pub struct JobSettings {
 impl Default for JobSettings {
     fn default() -> Self {
         JobSettings {
-            width: 1920,
-            height: 1080,
-            spp: 4096,
+            width: 0,
+            height: 0,
+            spp: 0,
             tile_size: 64,
             spp_per_chunk: 64,
             seed: 0,
@@ -121,6 +122,7 @@ pub fn chunk_plan(s: &JobSettings) -> Vec<ChunkSpec> {
 /// A scene bundle: the scene file's path and every file it needs (the scene too), by relative
 /// path, each named by the BLAKE3 hash (hex) of its bytes.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Bundle {
     pub scene: String,
     pub files: BTreeMap<String, String>,
@@ -218,6 +220,7 @@ pub fn is_hash(s: &str) -> bool {
 /// What a client submits: a bundle (its files uploaded first) and settings. Width, height and
 /// spp of 0 take the scene's own.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct JobSpec {
     pub bundle: Bundle,
     #[serde(default)]
@@ -226,6 +229,7 @@ pub struct JobSpec {
 
 /// A worker asking for work.
 #[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct LeaseRequest {
     pub worker: String,
     /// How long the coordinator may hold the request open waiting for work (long polling),
@@ -250,6 +254,7 @@ pub struct Lease {
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Heartbeat {
     pub epoch: u64,
 }
@@ -428,7 +433,7 @@ mod tests {
 
     #[test]
     fn job_limits_are_checked_without_overflow() {
-        let ok = JobSettings::default();
+        let ok = JobSettings { width: 1920, height: 1080, spp: 4096, ..JobSettings::default() };
         assert_eq!(ok.check_limits(), Ok(510 * 64));
         let refused = |s: JobSettings, fragment: &str| {
             let e = s.check_limits().unwrap_err();
