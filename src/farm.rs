@@ -49,7 +49,8 @@ pub struct WorkerArgs {
     /// Name shown in job status (default: host and process id).
     #[arg(long, env = "FURNACE_NAME")]
     pub name: Option<String>,
-    /// Scene bundle cache (default: furnace-cache in the temp folder).
+    /// Scene bundle cache, private to the user (default: $XDG_CACHE_HOME/furnace or
+    /// ~/.cache/furnace).
     #[arg(long)]
     pub cache: Option<PathBuf>,
     /// Exit when the coordinator has no work instead of polling on.
@@ -212,7 +213,7 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
     let stop = Arc::new(AtomicBool::new(false));
     stop_on_signal(stop.clone());
     let host = std::fs::read_to_string("/etc/hostname").map(|s| s.trim().to_string()).unwrap_or_default();
-    let cache = a.cache.unwrap_or_else(|| std::env::temp_dir().join("furnace-cache"));
+    let cache = a.cache.unwrap_or_else(furnace_worker::default_cache_dir);
     let mut link = furnace_worker::HttpLink::new(&a.coordinator, a.token, cache)?;
     link.health_file = a.health_file;
     let cfg = furnace_worker::WorkerConfig {

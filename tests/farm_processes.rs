@@ -128,6 +128,35 @@ fn two_workers_render_the_same_bytes_as_furnace_render() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Issue 14: the worker's cache trusted what was on disk: a planted file gave a wrong image
+/// accepted as done, a planted link made the worker overwrite another file. Now a cached file
+/// is used only if it hashes to its name, and links are replaced, never written through.
+#[test]
+fn a_poisoned_cache_changes_nothing() {
+    let dir = scratch("farmcache");
+    let cache = dir.join("cache");
+    let bundle = bundle_of("", "");
+    let scene_hash = &bundle.files["small.xml"];
+    // A wrong scene under the scene's hash, and the bundle's scene path a link to a victim.
+    std::fs::create_dir_all(cache.join("files")).unwrap();
+    let wrong = std::fs::read_to_string(scenes().join("small.xml")).unwrap().replace("0.8", "0.1");
+    std::fs::write(cache.join("files").join(scene_hash), wrong).unwrap();
+    let victim = dir.join("victim.txt");
+    std::fs::write(&victim, "untouched").unwrap();
+    let laid_out = cache.join("bundles").join(bundle.hash());
+    std::fs::create_dir_all(&laid_out).unwrap();
+    std::os::unix::fs::symlink(&victim, laid_out.join("small.xml")).unwrap();
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let _w = worker(&url, "w", &cache);
+    let job = submit(&url, "small.xml", 4, 4);
+    let farm = wait_done(&url, &job, Duration::from_secs(60));
+    assert!(farm == local_render(&dir, "small.xml", 4), "a poisoned cache changed the image");
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "untouched");
+    use std::os::unix::fs::PermissionsExt;
+    assert_eq!(std::fs::metadata(&cache).unwrap().permissions().mode() & 0o777, 0o700);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `serve --local-workers`: workers inside the coordinator's process (the in-process link,
 /// with the scene the coordinator loaded) give the same bytes.
 #[test]

@@ -269,7 +269,7 @@ impl HttpLink {
             .timeout(Duration::from_secs(120))
             .build()
             .map_err(|e| WorkerError::Client(e.to_string()))?;
-        std::fs::create_dir_all(&cache)
+        let cache = private_dir(&cache)
             .map_err(|err| WorkerError::Cache { path: cache.display().to_string(), err })?;
         let base = base.trim_end_matches('/').to_string();
         let scenes = Mutex::new(HashMap::new());
@@ -331,23 +331,33 @@ impl HttpLink {
         if bundle.hash() != bundle_hash {
             return Err(format!("bundle manifest does not hash to {bundle_hash}"));
         }
+        // Nothing on disk is trusted: a cached file is used only if it is a plain file that
+        // still hashes to its name, and the bundle's folder is laid out anew from those bytes
+        // (removing a planted link removes the link, never what it points to; new files are
+        // renamed into place, which replaces a link instead of writing through it).
         let dir = self.cache.join("bundles").join(bundle_hash);
+        let cache_err = |p: &Path, e: std::io::Error| format!("cache {}: {e}", p.display());
+        match std::fs::symlink_metadata(&dir) {
+            Ok(m) if m.is_dir() => std::fs::remove_dir_all(&dir),
+            Ok(_) => std::fs::remove_file(&dir),
+            Err(_) => Ok(()),
+        }
+        .map_err(|e| cache_err(&dir, e))?;
         for (path, hash) in &bundle.files {
             let file = self.cache.join("files").join(hash);
-            if !file.exists() {
-                let bytes = self.get(&format!("/v1/files/{hash}"))?;
-                if blake3::hash(&bytes).to_hex().as_str() != hash {
-                    return Err(format!("file {path} does not hash to {hash}"));
+            let bytes = match cached(&file, hash) {
+                Some(bytes) => bytes,
+                None => {
+                    let bytes = self.get(&format!("/v1/files/{hash}"))?;
+                    if blake3::hash(&bytes).to_hex().as_str() != hash {
+                        return Err(format!("file {path} does not hash to {hash}"));
+                    }
+                    write_file(&file, &bytes).map_err(|e| cache_err(&file, e))?;
+                    bytes
                 }
-                write_file(&file, &bytes).map_err(|e| format!("cache {}: {e}", file.display()))?;
-            }
+            };
             let dst = dir.join(path);
-            if !dst.exists() {
-                if let Some(p) = dst.parent() {
-                    std::fs::create_dir_all(p).map_err(|e| e.to_string())?;
-                }
-                std::fs::copy(&file, &dst).map_err(|e| format!("cache {}: {e}", dst.display()))?;
-            }
+            write_file(&dst, &bytes).map_err(|e| cache_err(&dst, e))?;
         }
         Scene::load(&dir.join(&bundle.scene), &[]).map_err(|e| e.to_string())
     }
@@ -415,6 +425,61 @@ impl Link for HttpLink {
     }
 }
 
+/// A cached file's bytes, if it is a plain file (not a link) that hashes to `hash`.
+fn cached(file: &Path, hash: &str) -> Option<Vec<u8>> {
+    if !std::fs::symlink_metadata(file).ok()?.is_file() {
+        return None;
+    }
+    let bytes = std::fs::read(file).ok()?;
+    (blake3::hash(&bytes).to_hex().as_str() == hash).then_some(bytes)
+}
+
+/// The worker's default cache: `$XDG_CACHE_HOME/furnace`, else `~/.cache/furnace`, else
+/// `furnace-cache-$USER` in the temporary folder (made private by [`HttpLink::new`]).
+pub fn default_cache_dir() -> PathBuf {
+    let env = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
+    env("XDG_CACHE_HOME")
+        .or_else(|| env("HOME").map(|h| h.join(".cache")))
+        .map(|c| c.join("furnace"))
+        .unwrap_or_else(|| {
+            let user = std::env::var("USER").unwrap_or_else(|_| "user".into());
+            std::env::temp_dir().join(format!("furnace-cache-{user}"))
+        })
+}
+
+/// The cache folder to use for `dir`: `dir` itself when it is a folder (not a link) of this
+/// process's user, made private (mode 0700); in a folder of another user (a shared `/tmp`,
+/// a Kubernetes emptyDir), a private `furnace-UID` inside it.
+fn private_dir(dir: &Path) -> std::io::Result<PathBuf> {
+    use std::os::unix::fs::{DirBuilderExt, MetadataExt, PermissionsExt};
+    // On Linux /proc/self belongs to this process's user.
+    let me = std::fs::metadata("/proc/self").map(|p| p.uid()).ok();
+    let mut dir = dir.to_path_buf();
+    for last in [false, true] {
+        std::fs::DirBuilder::new().recursive(true).mode(0o700).create(&dir)?;
+        let m = std::fs::symlink_metadata(&dir)?;
+        if !m.is_dir() {
+            return Err(std::io::Error::other(format!(
+                "{} is not a folder (a link is refused)",
+                dir.display()
+            )));
+        }
+        match me {
+            Some(uid) if m.uid() != uid && last => {
+                return Err(std::io::Error::other(format!("{} belongs to another user", dir.display())))
+            }
+            Some(uid) if m.uid() != uid => dir = dir.join(format!("furnace-{uid}")),
+            _ => {
+                if m.mode() & 0o077 != 0 {
+                    std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700))?;
+                }
+                return Ok(dir);
+            }
+        }
+    }
+    unreachable!("the second pass returns")
+}
+
 fn write_file(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     if let Some(p) = path.parent() {
         std::fs::create_dir_all(p)?;
@@ -422,4 +487,35 @@ fn write_file(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let tmp = path.with_extension(format!("tmp{}", std::process::id()));
     std::fs::write(&tmp, bytes)?;
     std::fs::rename(tmp, path)
+}
+
+#[cfg(test)]
+mod cache_tests {
+    use super::*;
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+
+    /// The cache is a private folder: made 0700 when ours; a private `furnace-UID` inside a
+    /// folder of another user; a link is refused.
+    #[test]
+    fn the_cache_folder_is_private_to_its_user() {
+        let root = std::env::temp_dir().join(format!("furnace-cache-test-{}", std::process::id()));
+        std::fs::remove_dir_all(&root).ok();
+        let ours = root.join("ours");
+        std::fs::create_dir_all(&ours).unwrap();
+        std::fs::set_permissions(&ours, std::fs::Permissions::from_mode(0o777)).unwrap();
+        assert_eq!(private_dir(&ours).unwrap(), ours);
+        assert_eq!(std::fs::metadata(&ours).unwrap().mode() & 0o777, 0o700);
+        let link = root.join("link");
+        std::os::unix::fs::symlink(&ours, &link).unwrap();
+        assert!(private_dir(&link).unwrap_err().to_string().contains("link is refused"));
+        let me = std::fs::metadata("/proc/self").unwrap().uid();
+        let theirs = root.join("theirs");
+        std::fs::create_dir_all(&theirs).unwrap();
+        if std::os::unix::fs::chown(&theirs, Some(me + 1), None).is_ok() {
+            let dir = private_dir(&theirs).unwrap();
+            assert_eq!(dir, theirs.join(format!("furnace-{me}")));
+            assert_eq!(std::fs::metadata(&dir).unwrap().mode() & 0o777, 0o700);
+        }
+        std::fs::remove_dir_all(&root).ok();
+    }
 }
