@@ -157,6 +157,34 @@ fn a_poisoned_cache_changes_nothing() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Issue 14: SIGTERM never completed while an `/events` stream was open. Now open streams
+/// end and the coordinator exits.
+#[test]
+fn sigterm_ends_open_event_streams_and_the_coordinator_exits() {
+    let dir = scratch("farmterm");
+    let (mut c, url) = coordinator(&dir.join("data"), &[], 0);
+    let job = submit(&url, "small.xml", 8, 4); // no workers: it stays queued
+    let stream = std::net::TcpStream::connect(url.strip_prefix("http://").unwrap()).unwrap();
+    let request = format!("GET /v1/jobs/{job}/events HTTP/1.1\r\nHost: x\r\n\r\n");
+    std::io::Write::write_all(&mut &stream, request.as_bytes()).unwrap();
+    let mut first = String::new();
+    BufReader::new(&stream).read_line(&mut first).unwrap();
+    assert!(first.contains("200"), "{first}");
+    let pid = c.0.id().to_string();
+    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    let t = std::time::Instant::now();
+    loop {
+        if let Some(status) = c.0.try_wait().unwrap() {
+            assert!(status.success(), "{status}");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "still running 10 s after SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    drop(stream);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `serve --local-workers`: workers inside the coordinator's process (the in-process link,
 /// with the scene the coordinator loaded) give the same bytes.
 #[test]

@@ -28,6 +28,8 @@ pub struct AppState {
     work: Arc<Notify>,
     /// Submissions whose scenes load at once; the others wait their turn.
     loads: Arc<tokio::sync::Semaphore>,
+    /// Set when the server shuts down: open event streams end.
+    closing: Arc<tokio::sync::watch::Sender<bool>>,
 }
 
 /// Scenes loaded at once (each may take a core and much memory while it loads).
@@ -44,6 +46,7 @@ impl AppState {
             token,
             work: Arc::new(Notify::new()),
             loads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_LOADS)),
+            closing: Arc::new(tokio::sync::watch::channel(false).0),
         }
     }
 
@@ -375,18 +378,25 @@ async fn get_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult
 
 async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
     s.lock().status(&id)?;
-    let stream = futures_util::stream::unfold((s, id, false), |(s, id, finished)| async move {
-        if finished {
-            return None;
-        }
-        let status = s.lock().status(&id).ok()?;
-        let done = matches!(status.state, furnace_proto::JobState::Done | furnace_proto::JobState::Cancelled);
-        let event = Event::default().event("progress").json_data(&status).ok()?;
-        if !done {
-            tokio::time::sleep(Duration::from_millis(500)).await;
-        }
-        Some((Ok::<_, std::convert::Infallible>(event), (s, id, done)))
-    });
+    // Ends when the job does, or when the server shuts down.
+    let closing = s.closing.subscribe();
+    let stream =
+        futures_util::stream::unfold((s, id, closing, false), |(s, id, mut closing, finished)| async move {
+            if finished || *closing.borrow() {
+                return None;
+            }
+            let status = s.lock().status(&id).ok()?;
+            let done =
+                matches!(status.state, furnace_proto::JobState::Done | furnace_proto::JobState::Cancelled);
+            let event = Event::default().event("progress").json_data(&status).ok()?;
+            if !done {
+                tokio::select! {
+                    _ = tokio::time::sleep(Duration::from_millis(500)) => {}
+                    _ = closing.changed() => {}
+                }
+            }
+            Some((Ok::<_, std::convert::Infallible>(event), (s, id, closing, done)))
+        });
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
 }
 
@@ -517,5 +527,10 @@ pub async fn run(
             }
         }
     });
+    let closing = state.closing.clone();
+    let shutdown = async move {
+        shutdown.await;
+        closing.send_replace(true);
+    };
     axum::serve(listener, router(state)).with_graceful_shutdown(shutdown).await
 }
