@@ -311,6 +311,12 @@ fn bad_uploads_are_refused_and_change_nothing() {
     let (code, e) = put(&a, a.epoch, wrong);
     assert_eq!(code, 400, "{e}");
     assert!(e["error"].as_str().unwrap().contains("partial covers"), "{e}");
+    // The right size and count, but a negative weight: implausible, refused.
+    let mut negative = furnace_proto::decode_partial(&good_a, 1 << 24).unwrap();
+    negative.pixels[0].weight = -negative.pixels[0].weight - 1;
+    let (code, e) = put(&a, a.epoch, encode_partial(&negative));
+    assert_eq!(code, 400, "{e}");
+    assert!(e["error"].as_str().unwrap().contains("negative sum"), "{e}");
     // The right partial, then the same again: merged once.
     assert_eq!(put(&a, a.epoch, good_a.clone()).0, 204);
     let (code, e) = put(&a, a.epoch, good_a);

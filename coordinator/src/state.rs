@@ -149,6 +149,17 @@ impl Job {
                 acc.sample_count()
             ));
         }
+        // Filters weigh samples by non-negative weights and radiance is non-negative: no sum
+        // can be negative, and no pixel gets more than the chunk's samples per pixel.
+        let spp = r.s1 - r.s0;
+        let bad = acc
+            .pixels
+            .iter()
+            .position(|p| p.weight < 0 || p.lum2 < 0 || p.rgb.iter().any(|&c| c < 0) || p.count > spp);
+        if let Some(i) = bad {
+            let (x, y) = (acc.x0 + i as u32 % acc.width, acc.y0 + i as u32 / acc.width);
+            return Err(format!("partial pixel ({x}, {y}) holds a negative sum or more than {spp} samples"));
+        }
         Ok(())
     }
 
