@@ -333,6 +333,11 @@ fn bad_uploads_are_refused_and_change_nothing() {
     assert_eq!(r.status().as_u16(), 422);
     let e: serde_json::Value = r.json().unwrap();
     assert!(e["error"].as_str().unwrap().contains("limit of 16777216 samples"), "{e}");
+    // A path parameter of the wrong type: a JSON error like every other refusal.
+    let r = http.post(format!("{url}/v1/jobs/{job}/chunks/seven/heartbeat")).body("{}").send().unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let e: serde_json::Value = r.json().expect("a JSON error");
+    assert!(e["error"].as_str().unwrap().contains("seven"), "{e}");
     // Garbage lease request.
     let r = http.post(format!("{url}/v1/leases")).body("{").send().unwrap();
     assert_eq!(r.status().as_u16(), 400);

@@ -74,10 +74,27 @@ impl IntoResponse for CoordError {
             CoordError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         };
         if status.is_server_error() {
+            // The details (paths on this host among them) go to the log, not to the client.
             tracing::error!("{self}");
+            return error(status, "internal error (the coordinator's log has the details)");
         }
         error(status, self.to_string())
     }
+}
+
+/// Refusals made by the framework (a body over the limit, a path parameter of the wrong
+/// type) as JSON errors like every other.
+async fn json_errors(resp: Response) -> Response {
+    let json = resp
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if !resp.status().is_client_error() || json {
+        return resp;
+    }
+    let status = resp.status();
+    let body = axum::body::to_bytes(resp.into_body(), 4096).await.unwrap_or_default();
+    error(status, String::from_utf8_lossy(&body).trim())
 }
 
 type ApiResult = Result<Response, CoordError>;
@@ -157,6 +174,7 @@ pub fn router(state: AppState) -> Router {
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint (see /v1)") })
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(DefaultBodyLimit::max(MAX_BODY))
+        .layer(middleware::map_response(json_errors))
         .with_state(state)
         .merge(open)
         .layer(middleware::from_fn(timed))

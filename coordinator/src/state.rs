@@ -414,8 +414,14 @@ impl Loader {
         let manifest = self.data.join("bundles").join(format!("{hash}.json"));
         let new = !dir.exists();
         let laid_out = self.lay_out(b, &dir, &manifest).and_then(|_| {
-            Scene::load(&dir.join(&b.scene), &[])
-                .map_err(|e| CoordError::Unprocessable(format!("the scene cannot be rendered: {e}")))
+            Scene::load(&dir.join(&b.scene), &[]).map_err(|e| {
+                // Paths relative to the bundle: the client's own, not this host's.
+                let inside = format!("{}/", dir.display());
+                CoordError::Unprocessable(format!(
+                    "the scene cannot be rendered: {}",
+                    e.to_string().replace(&inside, "")
+                ))
+            })
         });
         if laid_out.is_err() && new {
             // Nothing is left behind by a submission that fails.
