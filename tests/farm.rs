@@ -357,3 +357,55 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
     assert_eq!(bundles(), before, "a failed submission left files behind");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Issue 14: a job's memory was never released, every job ever submitted was rebuilt (scene
+/// included) at each start, and there was no way to delete one. Now a finished job keeps only
+/// its final status (its result is on disk), comes back after a restart without its scene,
+/// and can be deleted with its files.
+#[test]
+fn finished_jobs_release_their_memory_restart_without_their_scene_and_can_be_deleted() {
+    let dir = scratch("coord-evict");
+    let data = dir.join("data");
+    let scene = load("small.xml", &[]);
+    let coord = open_coordinator(&data);
+    let settings = JobSettings {
+        spp: 4,
+        tile_size: 8,
+        spp_per_chunk: 2,
+        seed: 9,
+        width: 0,
+        height: 0,
+        ..JobSettings::default()
+    };
+    let job = submit_small(&coord, &scene, settings);
+    let held = coord.lock().unwrap().held_bytes(&job).unwrap();
+    assert!(held >= 48 * 40 * 96, "{held} bytes");
+    let running = coord.lock().unwrap().status(&job).unwrap();
+    render_leases(&coord, &scene, usize::MAX);
+    let (status, image) = {
+        let c = coord.lock().unwrap();
+        assert_eq!(c.held_bytes(&job).unwrap(), 0, "a finished job still holds its accumulation");
+        (c.status(&job).unwrap(), c.image(&job).unwrap())
+    };
+    assert_eq!(status.state, JobState::Done);
+    assert_eq!((status.chunks_done, status.chunks_total), (running.chunks_total, running.chunks_total));
+    assert!(image.data == render(&scene, 4, 9).0.develop().data);
+    drop(coord);
+    // Without the scene's files, a restart still brings the finished job back as it was.
+    std::fs::remove_dir_all(data.join("bundles")).unwrap();
+    std::fs::remove_dir_all(data.join("files")).unwrap();
+    let coord = open_coordinator(&data);
+    let mut c = coord.lock().unwrap();
+    assert_eq!(c.status(&job).unwrap(), status);
+    assert_eq!(c.held_bytes(&job).unwrap(), 0);
+    assert!(c.image(&job).unwrap().data == image.data);
+    // Deleted: gone from memory and the database; the caller removes the folder.
+    let job_dir = c.delete(&job).unwrap();
+    assert!(matches!(c.status(&job), Err(CoordError::NotFound(_))));
+    drop(c);
+    drop(coord);
+    std::fs::remove_dir_all(&job_dir).unwrap();
+    let coord = open_coordinator(&data);
+    assert!(coord.lock().unwrap().job_ids().is_empty());
+    std::fs::remove_dir_all(&dir).ok();
+}

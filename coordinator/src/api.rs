@@ -126,6 +126,7 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("post", "/v1/jobs"),
     ("get", "/v1/jobs"),
     ("get", "/v1/jobs/{id}"),
+    ("delete", "/v1/jobs/{id}"),
     ("get", "/v1/jobs/{id}/events"),
     ("get", "/v1/jobs/{id}/preview.png"),
     ("get", "/v1/jobs/{id}/result.exr"),
@@ -161,7 +162,7 @@ pub fn router(state: AppState) -> Router {
             get(|State(s): State<AppState>| async move { Json(s.lock().workers(Instant::now())) }),
         )
         .route("/v1/jobs", post(post_job).get(list_jobs))
-        .route("/v1/jobs/{id}", get(get_job))
+        .route("/v1/jobs/{id}", get(get_job).delete(delete_job))
         .route("/v1/jobs/{id}/events", get(job_events))
         .route("/v1/jobs/{id}/preview.png", get(preview))
         .route("/v1/jobs/{id}/result.exr", get(result))
@@ -418,8 +419,23 @@ async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
 }
 
+async fn delete_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
+    let dir = s.lock().delete(&id)?;
+    let removed = tokio::task::spawn_blocking(move || std::fs::remove_dir_all(&dir)).await;
+    if let Ok(Err(e)) = removed {
+        if e.kind() != std::io::ErrorKind::NotFound {
+            tracing::warn!(job = %id, "removing the job's files: {e}");
+        }
+    }
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
 async fn preview(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
-    let img = s.lock().image(&id)?;
+    let picture = s.lock().picture(&id)?;
+    // A finished job's result is read without the lock.
+    let img = tokio::task::spawn_blocking(move || picture.image())
+        .await
+        .map_err(|e| CoordError::Internal(e.to_string()))??;
     let bytes = img.png_bytes(0.0).map_err(|e| CoordError::Internal(format!("preview: {e}")))?;
     Ok(([(header::CONTENT_TYPE, "image/png")], bytes).into_response())
 }

@@ -112,6 +112,9 @@ struct Job {
     recent: VecDeque<(Instant, u64)>,
     samples_done: u64,
     created: u64,
+    /// A finished job keeps only its final status (and its result on disk): the plan, the
+    /// chunk states, the accumulation and the scene are released.
+    final_status: Option<Box<JobStatus>>,
 }
 
 impl Job {
@@ -161,6 +164,59 @@ impl Job {
             return Err(format!("partial pixel ({x}, {y}) holds a negative sum or more than {spp} samples"));
         }
         Ok(())
+    }
+
+    /// A finished job as a restart restores it: its final status, nothing else.
+    fn finished(id: String, spec: JobSpec, created: u64, status: JobStatus) -> Job {
+        let mut job = Job {
+            bundle_hash: spec.bundle.hash(),
+            id,
+            spec,
+            state: JobState::Done,
+            plan: Vec::new(),
+            chunks: Vec::new(),
+            queue: VecDeque::new(),
+            accum: Accum::new(0, 0, 0, 0),
+            merged: HashSet::new(),
+            skipped: HashSet::new(),
+            tile_est: Vec::new(),
+            est_cache: std::cell::Cell::new(None),
+            checkpointed: HashSet::new(),
+            since_checkpoint: 0,
+            checkpointing: false,
+            last_checkpoint: Instant::now(),
+            margin: 0,
+            render_plan: status.plan.clone(),
+            failures: HashMap::new(),
+            errors: status.errors.clone(),
+            scene: None,
+            workers: BTreeMap::new(),
+            recent: VecDeque::new(),
+            samples_done: status.samples_done,
+            created,
+            final_status: None,
+        };
+        job.accum.dropped = status.dropped_samples;
+        job.release(status);
+        job
+    }
+
+    /// Keeps `status` as the job's final status and lets go of everything else.
+    fn release(&mut self, status: JobStatus) {
+        let dropped = self.accum.dropped;
+        self.accum = Accum::new(0, 0, 0, 0);
+        self.accum.dropped = dropped;
+        self.plan = Vec::new();
+        self.chunks = Vec::new();
+        self.queue = VecDeque::new();
+        self.merged = HashSet::new();
+        self.skipped = HashSet::new();
+        self.checkpointed = HashSet::new();
+        self.tile_est = Vec::new();
+        self.recent = VecDeque::new();
+        self.failures = HashMap::new();
+        self.scene = None;
+        self.final_status = Some(Box::new(status));
     }
 
     /// Records an error for the job's status: at most [`MAX_ERROR_BYTES`] of it, and only the
@@ -370,6 +426,23 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     Ok(())
 }
 
+/// A job's image: developed from its accumulation in memory, or a finished job's result file.
+pub enum Picture {
+    Developed(furnace_core::Image),
+    File(PathBuf),
+}
+
+impl Picture {
+    /// The image, reading the file if need be (call it without the coordinator's lock).
+    pub fn image(self) -> Result<furnace_core::Image, CoordError> {
+        match self {
+            Picture::Developed(img) => Ok(img),
+            Picture::File(path) => furnace_core::Image::read_exr(&path)
+                .map_err(|e| CoordError::Internal(format!("{}: {e}", path.display()))),
+        }
+    }
+}
+
 /// What loading a job's scene needs of the coordinator, taken out of it so that scenes are
 /// loaded, validated and planned without its lock.
 struct Loader {
@@ -521,6 +594,7 @@ impl Loader {
             samples_done: 0,
             created,
             scene: self.keep_scenes.then_some(scene),
+            final_status: None,
         })
     }
 }
@@ -563,7 +637,16 @@ impl Coordinator {
                 .and_then(|spec| {
                     let state: JobState = serde_json::from_value(serde_json::Value::String(state))
                         .map_err(|e| CoordError::Internal(format!("stored state unreadable: {e}")))?;
-                    Ok((c.restore_job(id.clone(), spec, state, created as u64)?, state))
+                    // A finished job with its final status on disk comes back without its scene.
+                    let dir = c.data.join("jobs").join(&id);
+                    let status = std::fs::read(dir.join("status.json")).ok();
+                    let status = status.and_then(|b| serde_json::from_slice::<JobStatus>(&b).ok());
+                    match status {
+                        Some(st) if state == JobState::Done && dir.join("result.exr").exists() => {
+                            Ok((Job::finished(id.clone(), spec, created as u64, st), state))
+                        }
+                        _ => Ok((c.restore_job(id.clone(), spec, state, created as u64)?, state)),
+                    }
                 });
             let (mut job, state) = match restored {
                 Ok(r) => r,
@@ -576,7 +659,13 @@ impl Coordinator {
             // the final checkpoint): finish it now.
             let open = !matches!(state, JobState::Done | JobState::Cancelled);
             let snap = if open { job.snapshot(&c.data, c.checkpoint_interval) } else { None };
-            c.jobs.insert(id, job);
+            let release = state == JobState::Done && job.final_status.is_none();
+            c.jobs.insert(id.clone(), job);
+            if release {
+                if let Err(e) = c.evict(&id) {
+                    tracing::error!(job = %id, "cannot release the finished job: {e}");
+                }
+            }
             if let Some(s) = snap {
                 let result = s.write();
                 c.checkpoint_written(&s, &result);
@@ -865,6 +954,11 @@ impl Coordinator {
 
     fn leased(&mut self, job: &str, chunk: u32, epoch: u64) -> Result<&mut Job, CoordError> {
         let j = self.job_mut(job)?;
+        if j.final_status.is_some() {
+            return Err(CoordError::Conflict(format!(
+                "chunk {chunk} of job {job} is already merged: the job is done"
+            )));
+        }
         if j.state == JobState::Cancelled {
             return Err(CoordError::Conflict(format!("job {job} is cancelled: its leases are revoked")));
         }
@@ -1036,6 +1130,10 @@ impl Coordinator {
         let mut pending_chunks = 0;
         for j in self.jobs.values() {
             *jobs.entry(j.state.name().into()).or_default() += 1;
+            if let Some(st) = &j.final_status {
+                *chunks.entry("done".into()).or_default() += st.chunks_done - st.chunks_skipped;
+                *chunks.entry("skipped".into()).or_default() += st.chunks_skipped;
+            }
             for c in &j.chunks {
                 let name = match c {
                     ChunkState::Pending => "pending",
@@ -1073,6 +1171,12 @@ impl Coordinator {
                 tracing::error!(job = %snap.job, "cannot record the job as done: {e}");
             }
             tracing::info!(job = %snap.job, "job done");
+            // A stored job's result is on disk: its memory goes (`furnace render`'s stays).
+            if self.persist {
+                if let Err(e) = self.evict(&snap.job) {
+                    tracing::error!(job = %snap.job, "cannot release the finished job: {e}");
+                }
+            }
             return None;
         }
         j.snapshot(&data, interval)
@@ -1085,6 +1189,13 @@ impl Coordinator {
 
     pub fn status(&self, id: &str) -> Result<JobStatus, CoordError> {
         let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        if let Some(st) = &j.final_status {
+            return Ok(JobStatus {
+                settings: j.spec.settings.clone(),
+                errors: j.errors.clone(),
+                ..(**st).clone()
+            });
+        }
         let (done, leased, pending) = j.counts();
         let rate = match (j.recent.front(), j.recent.back()) {
             (Some(a), Some(b)) if b.0 > a.0 => {
@@ -1120,9 +1231,52 @@ impl Coordinator {
     }
 
     /// The merged image so far.
-    pub fn image(&self, id: &str) -> Result<furnace_core::Image, CoordError> {
+    /// The job's image: developed from the accumulation, or (a finished job's) its result file.
+    pub fn picture(&self, id: &str) -> Result<Picture, CoordError> {
         let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
-        Ok(j.accum.develop())
+        Ok(match j.final_status {
+            Some(_) => Picture::File(j.dir(&self.data).join("result.exr")),
+            None => Picture::Developed(j.accum.develop()),
+        })
+    }
+
+    pub fn image(&self, id: &str) -> Result<furnace_core::Image, CoordError> {
+        self.picture(id)?.image()
+    }
+
+    /// Bytes the job's plan, chunk states and accumulation hold in memory (the larger part
+    /// of what a job costs: 96 bytes a pixel).
+    pub fn held_bytes(&self, id: &str) -> Result<usize, CoordError> {
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        Ok(j.accum.pixels.capacity() * std::mem::size_of::<furnace_core::film::PixelSum>()
+            + j.plan.capacity() * std::mem::size_of::<ChunkSpec>()
+            + j.chunks.capacity() * std::mem::size_of::<ChunkState>()
+            + j.tile_est.capacity() * 8)
+    }
+
+    /// Forgets a job: its row, its state in memory; returns its folder, for the caller to
+    /// remove outside the lock. Leases of it are refused from now on.
+    pub fn delete(&mut self, id: &str) -> Result<PathBuf, CoordError> {
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        let dir = j.dir(&self.data);
+        self.db.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
+        self.jobs.remove(id);
+        tracing::info!(job = %id, "job deleted");
+        Ok(dir)
+    }
+
+    /// Releases a finished job's memory, keeping its final status (also written to
+    /// `status.json`, so that a restart need not load its scene).
+    fn evict(&mut self, id: &str) -> Result<(), CoordError> {
+        let st = self.status(id)?;
+        let (data, persist) = (self.data.clone(), self.persist);
+        let j = self.job_mut(id)?;
+        if persist {
+            let json = serde_json::to_vec(&st).map_err(|e| CoordError::Internal(e.to_string()))?;
+            write_atomic(&j.dir(&data).join("status.json"), &json)?;
+        }
+        j.release(st);
+        Ok(())
     }
 
     pub fn result_path(&self, id: &str) -> Result<PathBuf, CoordError> {
@@ -1222,7 +1376,9 @@ pub fn check_upload(
 /// worker was still rendering, or a retried upload whose first attempt got through).
 fn count_duplicate(coord: &Mutex<Coordinator>, job: &str, chunk: u32) {
     let c = coord.lock().unwrap_or_else(|e| e.into_inner());
-    if c.jobs.get(job).is_some_and(|j| matches!(j.chunks.get(chunk as usize), Some(ChunkState::Done))) {
+    let merged =
+        |j: &Job| j.final_status.is_some() || matches!(j.chunks.get(chunk as usize), Some(ChunkState::Done));
+    if c.jobs.get(job).is_some_and(merged) {
         metrics::counter!("furnace_duplicate_uploads_total").increment(1);
     }
 }
