@@ -31,6 +31,12 @@ pub struct ServeArgs {
     /// Seconds a lease lasts without a heartbeat.
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
+    /// Connections served at once; more wait to be accepted.
+    #[arg(long, default_value_t = furnace_coordinator::api::MAX_CONNECTIONS)]
+    pub max_connections: usize,
+    /// Seconds a client has to send a request's headers.
+    #[arg(long, default_value_t = furnace_coordinator::api::HEADER_READ_TIMEOUT.as_secs_f64())]
+    pub header_timeout: f64,
 }
 
 #[derive(Args)]
@@ -170,7 +176,9 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
     // Local workers take the scene the coordinator loaded to check the job.
     coord.keep_scenes = a.local_workers > 0;
-    let state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone());
+    let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone());
+    state.max_connections = a.max_connections.clamp(1, u32::MAX as usize);
+    state.header_timeout = Duration::from_secs_f64(a.header_timeout.clamp(0.1, 3600.0));
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(a.bind)

@@ -185,6 +185,35 @@ fn sigterm_ends_open_event_streams_and_the_coordinator_exits() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Issue 14: idle half-requests held connections forever and, enough of them, made the
+/// coordinator unreachable. Now a client has `--header-timeout` to send its headers and at most
+/// `--max-connections` are served at once, the others waiting to be accepted.
+#[test]
+fn idle_half_requests_time_out_and_the_coordinator_stays_reachable() {
+    let dir = scratch("farmslow");
+    let (_c, url) = coordinator(&dir.join("data"), &["--max-connections", "8", "--header-timeout", "1"], 0);
+    let addr = url.strip_prefix("http://").unwrap().to_string();
+    let idle: Vec<_> = (0..20)
+        .map(|_| {
+            let s = std::net::TcpStream::connect(&addr).unwrap();
+            std::io::Write::write_all(&mut &s, b"GET /healthz HT").unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(8))).unwrap();
+            s
+        })
+        .collect();
+    let t = std::time::Instant::now();
+    let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(8)).build().unwrap();
+    assert_eq!(http.get(format!("{url}/healthz")).send().unwrap().status().as_u16(), 200);
+    assert!(t.elapsed() < Duration::from_secs(6), "answered after {:?}", t.elapsed());
+    // Every half-request is closed by the server (EOF, or an error response then EOF).
+    for s in idle {
+        let mut rest = Vec::new();
+        let r = std::io::Read::read_to_end(&mut &s, &mut rest);
+        assert!(r.is_ok(), "a half-request is still open after 8 s: {r:?}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `serve --local-workers`: workers inside the coordinator's process (the in-process link,
 /// with the scene the coordinator loaded) give the same bytes.
 #[test]

@@ -30,6 +30,10 @@ pub struct AppState {
     loads: Arc<tokio::sync::Semaphore>,
     /// Set when the server shuts down: open event streams end.
     closing: Arc<tokio::sync::watch::Sender<bool>>,
+    /// Connections served at once ([`MAX_CONNECTIONS`] unless set).
+    pub max_connections: usize,
+    /// Time a client has to send a request's headers ([`HEADER_READ_TIMEOUT`] unless set).
+    pub header_timeout: Duration,
 }
 
 /// Scenes loaded at once (each may take a core and much memory while it loads).
@@ -47,6 +51,8 @@ impl AppState {
             work: Arc::new(Notify::new()),
             loads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_LOADS)),
             closing: Arc::new(tokio::sync::watch::channel(false).0),
+            max_connections: MAX_CONNECTIONS,
+            header_timeout: HEADER_READ_TIMEOUT,
         }
     }
 
@@ -561,10 +567,65 @@ pub async fn run(
             }
         }
     });
-    let closing = state.closing.clone();
-    let shutdown = async move {
-        shutdown.await;
-        closing.send_replace(true);
-    };
-    axum::serve(listener, router(state)).with_graceful_shutdown(shutdown).await
+    let (closing, cap, timeout) = (state.closing.clone(), state.max_connections, state.header_timeout);
+    let app = router(state);
+    // Each connection holds a slot; when all are taken, new ones wait in the listen backlog.
+    let slots = Arc::new(tokio::sync::Semaphore::new(cap));
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        let slot = tokio::select! {
+            s = slots.clone().acquire_owned() => s.map_err(std::io::Error::other)?,
+            _ = &mut shutdown => break,
+        };
+        let stream = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    // Out of file descriptors and the like: wait, then go on.
+                    tracing::warn!("accept: {e}");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                }
+            },
+            _ = &mut shutdown => break,
+        };
+        tokio::spawn(serve_connection(stream, app.clone(), timeout, closing.subscribe(), slot));
+    }
+    // Stop: open event streams end, idle connections close, requests in flight finish.
+    closing.send_replace(true);
+    let _all = slots.acquire_many(cap as u32).await;
+    Ok(())
+}
+
+/// Connections served at once.
+pub const MAX_CONNECTIONS: usize = 512;
+/// Time a client has to send a request's headers once it has started it.
+pub const HEADER_READ_TIMEOUT: Duration = Duration::from_secs(10);
+
+async fn serve_connection(
+    stream: tokio::net::TcpStream,
+    app: Router,
+    header_timeout: Duration,
+    mut closing: tokio::sync::watch::Receiver<bool>,
+    _slot: tokio::sync::OwnedSemaphorePermit,
+) {
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(header_timeout);
+    let service = hyper_util::service::TowerToHyperService::new(app);
+    let mut conn = std::pin::pin!(http.serve_connection(hyper_util::rt::TokioIo::new(stream), service));
+    let mut stopping = *closing.borrow_and_update();
+    if stopping {
+        conn.as_mut().graceful_shutdown();
+    }
+    loop {
+        tokio::select! {
+            _ = conn.as_mut() => break,
+            changed = closing.changed(), if !stopping => {
+                stopping = true;
+                if changed.is_ok() {
+                    conn.as_mut().graceful_shutdown();
+                }
+            }
+        }
+    }
 }
