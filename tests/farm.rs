@@ -409,3 +409,37 @@ fn finished_jobs_release_their_memory_restart_without_their_scene_and_can_be_del
     assert!(coord.lock().unwrap().job_ids().is_empty());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Concurrent submissions of one bundle (a client's retry is enough) each lay it out in a
+/// folder of their own: the stored files stay intact and every submission gets a job.
+#[test]
+fn concurrent_submissions_of_one_bundle_leave_its_files_intact() {
+    let dir = scratch("coord-concurrent");
+    let coord = std::sync::Arc::new(open_coordinator(&dir.join("data")));
+    let scene = load("small.xml", &[]);
+    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
+    for (rel, path) in &files {
+        std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[rel])).unwrap();
+    }
+    let settings = JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() };
+    let threads: Vec<_> = (0..4)
+        .map(|_| {
+            let (coord, spec) =
+                (coord.clone(), JobSpec { bundle: bundle.clone(), settings: settings.clone() });
+            std::thread::spawn(move || furnace_coordinator::state::submit(&coord, spec, None))
+        })
+        .collect();
+    for t in threads {
+        t.join().unwrap().unwrap();
+    }
+    for hash in bundle.files.values() {
+        let bytes = std::fs::read(coord.lock().unwrap().file_path(hash)).unwrap();
+        assert_eq!(blake3::hash(&bytes).to_hex().as_str(), hash, "a stored file changed");
+    }
+    let leftovers = std::fs::read_dir(dir.join("data/bundles"))
+        .unwrap()
+        .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().ends_with(".tmp"));
+    assert_eq!(leftovers.count(), 0);
+    assert_eq!(coord.lock().unwrap().job_ids().len(), 4);
+    std::fs::remove_dir_all(&dir).ok();
+}

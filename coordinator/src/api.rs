@@ -339,13 +339,18 @@ async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: Byt
         return Err(CoordError::BadRequest(format!("body hashes to {actual}, not {hash}")));
     }
     let path = s.lock().file_path(&hash);
-    if path.exists() {
-        return Ok((StatusCode::OK, Json(serde_json::json!({"stored": false}))).into_response());
-    }
-    tokio::task::spawn_blocking(move || crate::state::write_atomic(&path, &body))
-        .await
-        .map_err(|e| CoordError::Internal(e.to_string()))??;
-    Ok((StatusCode::CREATED, Json(serde_json::json!({"stored": true}))).into_response())
+    // A stored file is kept only while it still hashes to its name; a damaged one is replaced.
+    let stored = tokio::task::spawn_blocking(move || -> Result<bool, CoordError> {
+        if std::fs::read(&path).is_ok_and(|b| blake3::hash(&b).to_hex().as_str() == hash) {
+            return Ok(false);
+        }
+        crate::state::write_atomic(&path, &body)?;
+        Ok(true)
+    })
+    .await
+    .map_err(|e| CoordError::Internal(e.to_string()))??;
+    let code = if stored { StatusCode::CREATED } else { StatusCode::OK };
+    Ok((code, Json(serde_json::json!({"stored": stored}))).into_response())
 }
 
 async fn head_file(State(s): State<AppState>, Path(hash): Path<String>) -> StatusCode {

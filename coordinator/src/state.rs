@@ -413,7 +413,11 @@ fn now_secs() -> u64 {
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let dir = path.parent().unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir)?;
-    let tmp = dir.join(format!(".{}.tmp", path.file_name().and_then(|n| n.to_str()).unwrap_or("file")));
+    // Unique, so that concurrent writes of one path never share a temporary file.
+    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+    let tmp = dir.join(format!(".{name}.{}.{n}.tmp", std::process::id()));
     {
         let mut f = std::fs::File::create(&tmp)?;
         f.write_all(bytes)?;
@@ -485,33 +489,46 @@ impl Loader {
         let hash = b.hash();
         let dir = self.bundle_dir(&hash);
         let manifest = self.data.join("bundles").join(format!("{hash}.json"));
-        let new = !dir.exists();
-        let laid_out = self.lay_out(b, &dir, &manifest).and_then(|_| {
-            Scene::load(&dir.join(&b.scene), &[]).map_err(|e| {
-                // Paths relative to the bundle: the client's own, not this host's.
-                let inside = format!("{}/", dir.display());
-                CoordError::Unprocessable(format!(
-                    "the scene cannot be rendered: {}",
-                    e.to_string().replace(&inside, "")
-                ))
-            })
-        });
-        if laid_out.is_err() && new {
-            // Nothing is left behind by a submission that fails.
-            std::fs::remove_dir_all(&dir).ok();
-            std::fs::remove_file(&manifest).ok();
+        let scene = if dir.is_dir() {
+            // Laid out by an earlier submission.
+            self.load_scene(&dir, b)?
+        } else {
+            // Laid out in a folder of this submission's own, loaded from there, then moved into
+            // place: concurrent submissions of one bundle never share a half-made folder, and
+            // one that fails leaves nothing behind.
+            static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+            let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let tmp = self.data.join("bundles").join(format!(".{hash}.{}.{n}.tmp", std::process::id()));
+            let loaded = self.lay_out(b, &tmp).and_then(|_| self.load_scene(&tmp, b));
+            // Another submission may have put the same bundle in place meanwhile: keep that.
+            if loaded.is_err() || std::fs::rename(&tmp, &dir).is_err() {
+                std::fs::remove_dir_all(&tmp).ok();
+            }
+            loaded?
+        };
+        if !manifest.exists() {
+            write_atomic(&manifest, &serde_json::to_vec(b).unwrap_or_default())?;
         }
-        Ok((dir, laid_out?))
+        Ok((dir, scene))
     }
 
-    /// The bundle's files under their paths in `dir`: hard links to the stored files (copies
-    /// where links cannot be made), each made once.
-    fn lay_out(&self, b: &Bundle, dir: &Path, manifest: &Path) -> Result<(), CoordError> {
+    /// Loads the bundle's scene from where it is laid out; errors name files by their bundle
+    /// paths, the client's own, not by this host's.
+    fn load_scene(&self, dir: &Path, b: &Bundle) -> Result<Scene, CoordError> {
+        Scene::load(&dir.join(&b.scene), &[]).map_err(|e| {
+            let inside = format!("{}/", dir.display());
+            CoordError::Unprocessable(format!(
+                "the scene cannot be rendered: {}",
+                e.to_string().replace(&inside, "")
+            ))
+        })
+    }
+
+    /// The bundle's files under their paths in a new folder `dir`: hard links to the stored
+    /// files (copies where links cannot be made).
+    fn lay_out(&self, b: &Bundle, dir: &Path) -> Result<(), CoordError> {
         for (path, h) in &b.files {
             let dst = dir.join(path);
-            if dst.exists() {
-                continue;
-            }
             let made = dst.parent().map_or(Ok(()), std::fs::create_dir_all).and_then(|_| {
                 std::fs::hard_link(self.file_path(h), &dst)
                     .or_else(|_| std::fs::copy(self.file_path(h), &dst).map(|_| ()))
@@ -520,7 +537,6 @@ impl Loader {
                 CoordError::BadRequest(format!("bundle path '{path}' cannot be laid out: {e}"))
             })?;
         }
-        std::fs::write(manifest, serde_json::to_vec(b).unwrap_or_default())?;
         Ok(())
     }
 
@@ -605,6 +621,12 @@ impl Coordinator {
         std::fs::create_dir_all(data.join("files"))?;
         std::fs::create_dir_all(data.join("jobs"))?;
         std::fs::create_dir_all(data.join("bundles"))?;
+        // Bundle folders of submissions a crash interrupted.
+        for e in std::fs::read_dir(data.join("bundles"))?.flatten() {
+            if e.file_name().to_string_lossy().ends_with(".tmp") {
+                std::fs::remove_dir_all(e.path()).ok();
+            }
+        }
         let db = rusqlite::Connection::open(data.join("furnace.db"))?;
         db.pragma_update(None, "journal_mode", "WAL")?;
         db.pragma_update(None, "synchronous", "FULL")?;
