@@ -104,3 +104,38 @@ fn three_thousand_nested_bsdfs_are_refused_without_overflowing_the_stack() {
         .expect("no stack overflow");
     assert!(e.contains("objects nest deeper than 64 levels"), "{e}");
 }
+
+/// Review of issue 14: `<ref>`s can name one BSDF many times. Forty levels of a `twosided`
+/// naming the level below twice were 2^40 builds and 2^40 steps of the unused-parameter check;
+/// each object is now built and checked once, without recursion (a chain of 5000 loads on a
+/// 2 MiB stack).
+#[test]
+fn bsdfs_named_by_many_refs_are_built_and_checked_once() {
+    let scene = |levels: usize, twice: bool| {
+        let mut xml = String::from(
+            r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
+            <film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/></film>
+            </sensor><bsdf type="diffuse" id="b0"><rgb name="reflectance" value="0.25"/></bsdf>"#,
+        );
+        for k in 1..=levels {
+            let r = format!("<ref id=\"b{}\"/>", k - 1);
+            let refs = if twice { r.repeat(2) } else { r };
+            xml.push_str(&format!("<bsdf type=\"twosided\" id=\"b{k}\">{refs}</bsdf>\n"));
+        }
+        xml.push_str(&format!("<shape type=\"sphere\"><ref id=\"b{levels}\"/></shape></scene>"));
+        xml
+    };
+    let t = std::time::Instant::now();
+    let dag = common::load_str(&scene(40, true)).unwrap();
+    assert!(t.elapsed().as_secs_f64() < 2.0, "{:?}", t.elapsed());
+    assert_eq!(dag.bsdfs.len(), 41, "each of the 41 top-level definitions once");
+    // A chain: each definition names the one before, already built, so nothing recurses.
+    let chain = scene(5000, false);
+    let loaded = std::thread::Builder::new()
+        .stack_size(2 << 20)
+        .spawn(move || common::load_str(&chain).map(|s| s.bsdfs.len()).map_err(|e| e.to_string()))
+        .unwrap()
+        .join()
+        .expect("no stack overflow");
+    assert_eq!(loaded, Ok(5001));
+}

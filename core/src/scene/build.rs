@@ -32,6 +32,10 @@ type R<T> = Result<T, SceneError>;
 struct Builder<'d> {
     doc: &'d Doc,
     bsdf_ids: HashMap<usize, u32>,
+    /// Each BSDF object's value, once built.
+    bsdf_values: HashMap<usize, Bsdf>,
+    /// BSDFs being built, one inside another.
+    bsdf_depth: usize,
     textures: HashMap<usize, Texture>,
     bitmaps: HashMap<(std::path::PathBuf, bool), Arc<Bitmap>>,
     bsdfs: Vec<Bsdf>,
@@ -44,6 +48,8 @@ pub fn build(doc: &Doc) -> R<Scene> {
     let mut b = Builder {
         doc,
         bsdf_ids: HashMap::new(),
+        bsdf_values: HashMap::new(),
+        bsdf_depth: 0,
         textures: HashMap::new(),
         bitmaps: HashMap::new(),
         bsdfs: Vec::new(),
@@ -416,7 +422,34 @@ impl Builder<'_> {
         Ok(id)
     }
 
+    /// A BSDF object's value, each object built once (`<ref>`s may name one many times).
     fn bsdf_value(&mut self, i: usize) -> R<Bsdf> {
+        if let Some(b) = self.bsdf_values.get(&i) {
+            return Ok(b.clone());
+        }
+        // Objects nest at most MAX_NESTING deep in the file; through <ref>s they could chain
+        // on: bound that too.
+        if self.bsdf_depth >= super::xml::MAX_NESTING {
+            return Err(self.err(self.doc.obj(i).pos, "BSDFs nest (through <ref>s) deeper than 64 levels"));
+        }
+        self.bsdf_depth += 1;
+        let b = self.bsdf_made(i);
+        self.bsdf_depth -= 1;
+        let b = b?;
+        self.bsdf_values.insert(i, b.clone());
+        Ok(b)
+    }
+
+    /// The side of a `twosided` BSDF: one nested inside it is only ever seen from its front
+    /// (each side is flipped to the front first), so its front serves.
+    fn side(&mut self, i: usize) -> R<Box<Bsdf>> {
+        Ok(Box::new(match self.bsdf_value(i)? {
+            Bsdf::TwoSided { front, .. } => *front,
+            b => b,
+        }))
+    }
+
+    fn bsdf_made(&mut self, i: usize) -> R<Bsdf> {
         let doc = self.doc;
         Ok(match doc.obj(i).plugin.as_str() {
             "diffuse" => Bsdf::Diffuse { reflectance: self.color(i, "reflectance", Rgb::splat(0.5))? },
@@ -424,19 +457,12 @@ impl Builder<'_> {
                 let nested = doc.children(i, "bsdf");
                 match nested.as_slice() {
                     [(_, f, _)] => {
-                        // A two-sided BSDF nested here is only ever seen from its front (each
-                        // side is flipped to the front first): use its front on both sides,
-                        // so nesting costs one copy per level, not a doubling.
-                        let front = match self.bsdf_value(*f)? {
-                            Bsdf::TwoSided { front, .. } => *front,
-                            front => front,
-                        };
-                        Bsdf::TwoSided { front: Box::new(front.clone()), back: Box::new(front) }
+                        let front = self.side(*f)?;
+                        Bsdf::TwoSided { front: front.clone(), back: front }
                     }
-                    [(_, f, _), (_, bk, _)] => Bsdf::TwoSided {
-                        front: Box::new(self.bsdf_value(*f)?),
-                        back: Box::new(self.bsdf_value(*bk)?),
-                    },
+                    [(_, f, _), (_, bk, _)] => {
+                        Bsdf::TwoSided { front: self.side(*f)?, back: self.side(*bk)? }
+                    }
                     _ => return Err(self.err(doc.obj(i).pos, "twosided needs one or two nested <bsdf>s")),
                 }
             }

@@ -129,34 +129,34 @@ impl Doc {
         }
     }
 
-    /// Reports the first property or nested object of `i` (and, recursively, of the objects it
-    /// consumed) that the builder did not use.
-    pub fn check_all_used(&self, i: usize) -> Result<(), SceneError> {
-        let o = &self.objs[i];
-        for p in &o.props {
-            if !p.used.get() {
-                return Err(self.err(
-                    p.pos,
-                    format!(
-                        "unsupported parameter '{}' ({}) for {}",
-                        p.name,
-                        p.value.type_name(),
-                        self.describe(i)
-                    ),
-                ));
+    /// Reports the first property or nested object of `root` (and, depth first, of the objects
+    /// it consumed) that the builder did not use. Each object is looked at once, without
+    /// recursion: `<ref>`s may name one object many times and chain deeply.
+    pub fn check_all_used(&self, root: usize) -> Result<(), SceneError> {
+        let mut seen = vec![false; self.objs.len()];
+        // (object, and the parent and child entry it was reached by)
+        let mut stack: Vec<(usize, Option<(usize, usize)>)> = vec![(root, None)];
+        while let Some((i, via)) = stack.pop() {
+            if let Some((parent, k)) = via {
+                let c = &self.objs[parent].children[k];
+                if !c.used.get() {
+                    let what = match &c.name {
+                        Some(n) => format!("{} named '{}'", self.describe(c.obj), n),
+                        None => self.describe(c.obj),
+                    };
+                    let msg = format!("unsupported nested {} inside {}", what, self.describe(parent));
+                    return Err(self.err(c.pos, msg));
+                }
             }
-        }
-        for c in &o.children {
-            if !c.used.get() {
-                let what = match &c.name {
-                    Some(n) => format!("{} named '{}'", self.describe(c.obj), n),
-                    None => self.describe(c.obj),
-                };
-                return Err(
-                    self.err(c.pos, format!("unsupported nested {} inside {}", what, self.describe(i)))
-                );
+            if std::mem::replace(&mut seen[i], true) {
+                continue;
             }
-            self.check_all_used(c.obj)?;
+            let o = &self.objs[i];
+            if let Some(p) = o.props.iter().find(|p| !p.used.get()) {
+                let what = format!("'{}' ({}) for {}", p.name, p.value.type_name(), self.describe(i));
+                return Err(self.err(p.pos, format!("unsupported parameter {what}")));
+            }
+            stack.extend((0..o.children.len()).rev().map(|k| (o.children[k].obj, Some((i, k)))));
         }
         Ok(())
     }
