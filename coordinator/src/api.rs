@@ -386,11 +386,14 @@ async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) ->
         }
     };
     let coord = s.coord.clone();
-    let _turn = s.loads.acquire().await.map_err(|e| CoordError::Internal(e.to_string()))?;
-    let (id, created) =
-        tokio::task::spawn_blocking(move || crate::state::submit(&coord, spec, key.as_deref()))
-            .await
-            .map_err(|e| CoordError::Internal(e.to_string()))??;
+    // The turn goes with the load: a client that hangs up does not free it early.
+    let turn = s.loads.clone().acquire_owned().await.map_err(|e| CoordError::Internal(e.to_string()))?;
+    let (id, created) = tokio::task::spawn_blocking(move || {
+        let _turn = turn;
+        crate::state::submit(&coord, spec, key.as_deref())
+    })
+    .await
+    .map_err(|e| CoordError::Internal(e.to_string()))??;
     s.new_work();
     let status = if created { StatusCode::CREATED } else { StatusCode::OK };
     Ok((status, Json(serde_json::json!({"id": id}))).into_response())
@@ -598,9 +601,16 @@ pub async fn run(
     }
     // Stop: open event streams end, idle connections close, requests in flight finish.
     closing.send_replace(true);
-    let _all = slots.acquire_many(cap as u32).await;
+    // At most a minute: a client trickling a request must not hold the exit.
+    let drained = tokio::time::timeout(SHUTDOWN_DRAIN, slots.acquire_many(cap as u32)).await;
+    if drained.is_err() {
+        tracing::warn!("stopping with requests still open after {SHUTDOWN_DRAIN:?}");
+    }
     Ok(())
 }
+
+/// How long shutdown waits for requests in flight.
+pub const SHUTDOWN_DRAIN: Duration = Duration::from_secs(60);
 
 /// Connections served at once.
 pub const MAX_CONNECTIONS: usize = 512;

@@ -759,20 +759,24 @@ impl Coordinator {
         let checkpoint = dir.join("checkpoint");
         if let Ok(bytes) = std::fs::read(&checkpoint) {
             let n = job.plan.len();
-            let checked =
-                decode_checkpoint(&bytes, self.max_partial.max(1 << 30)).and_then(|(ids, skipped, acc)| {
-                    let a = &job.accum;
-                    if (acc.x0, acc.y0, acc.width, acc.height) != (a.x0, a.y0, a.width, a.height) {
-                        return Err(format!(
-                            "it covers {}x{}, the job {}x{}",
-                            acc.width, acc.height, a.width, a.height
-                        ));
-                    }
-                    match ids.iter().chain(&skipped).find(|&&c| c as usize >= n) {
-                        Some(c) => Err(format!("it names chunk {c} of {n}")),
-                        None => Ok((ids, skipped, acc)),
-                    }
-                });
+            let limit = furnace_proto::partial_size_limit(job.accum.width, job.accum.height);
+            let checked = decode_checkpoint(&bytes, limit).and_then(|(ids, skipped, acc)| {
+                let a = &job.accum;
+                if (acc.x0, acc.y0, acc.width, acc.height) != (a.x0, a.y0, a.width, a.height) {
+                    return Err(format!(
+                        "it covers {}x{}, the job {}x{}",
+                        acc.width, acc.height, a.width, a.height
+                    ));
+                }
+                if let Some(c) = ids.iter().chain(&skipped).find(|&&c| c as usize >= n) {
+                    return Err(format!("it names chunk {c} of {n}"));
+                }
+                let merged: HashSet<u32> = ids.iter().copied().collect();
+                match skipped.iter().find(|c| merged.contains(c)) {
+                    Some(c) => Err(format!("it has chunk {c} both merged and skipped")),
+                    None => Ok((ids, skipped, acc)),
+                }
+            });
             match checked {
                 Ok((ids, skipped, acc)) => {
                     job.accum = acc;
@@ -798,9 +802,9 @@ impl Coordinator {
                     std::fs::remove_file(&path).ok();
                     continue;
                 }
-                let bytes = std::fs::read(&path)?;
-                let acc = match decode_partial(&bytes, self.max_partial)
+                let acc = match std::fs::read(&path)
                     .map_err(|e| e.to_string())
+                    .and_then(|bytes| decode_partial(&bytes, self.max_partial).map_err(|e| e.to_string()))
                     .and_then(|acc| job.fits(id, &acc).map(|_| acc))
                 {
                     Ok(acc) => acc,
@@ -955,7 +959,14 @@ impl Coordinator {
         let deadline = now + self.lease_duration;
         let ms = self.lease_duration.as_millis() as u64;
         let job = self.jobs.get_mut(&id)?;
-        let chunk = job.queue.pop_front()?;
+        // Only a pending chunk is handed out (a queue entry may be stale: a chunk merged
+        // meanwhile, or queued twice after a restart).
+        let chunk = loop {
+            let c = job.queue.pop_front()?;
+            if matches!(job.chunks[c as usize], ChunkState::Pending) {
+                break c;
+            }
+        };
         job.chunks[chunk as usize] =
             ChunkState::Leased { epoch, worker: worker.to_string(), deadline, since: now };
         job.workers.insert(worker.to_string(), now);
@@ -1153,7 +1164,7 @@ impl Coordinator {
         for j in self.jobs.values() {
             *jobs.entry(j.state.name().into()).or_default() += 1;
             if let Some(st) = &j.final_status {
-                *chunks.entry("done".into()).or_default() += st.chunks_done - st.chunks_skipped;
+                *chunks.entry("done".into()).or_default() += st.chunks_done.saturating_sub(st.chunks_skipped);
                 *chunks.entry("skipped".into()).or_default() += st.chunks_skipped;
             }
             for c in &j.chunks {
@@ -1517,6 +1528,24 @@ mod tests {
         assert_eq!(s.errors.len(), MAX_ERRORS);
         assert!(s.errors.iter().all(|e| e.len() <= MAX_ERROR_BYTES + 6 && e.ends_with("[cut]")));
         assert!(s.errors[MAX_ERRORS - 1].starts_with(&format!("worker w{}", MAX_ERRORS + 19)));
+    }
+
+    /// Review of issue 14: a queue entry for a chunk merged meanwhile (after a quarantine, a
+    /// noise-target job's next pass could be queued twice) was leased again and merged twice.
+    #[test]
+    fn only_pending_chunks_are_leased() {
+        let mut c = Coordinator::ephemeral().unwrap();
+        let job = submit(&mut c, 0);
+        let first = c.lease("w", Instant::now()).unwrap();
+        let coord = Mutex::new(c);
+        let acc = furnace_core::render_region(&tiny_scene(), &first.chunk.region, 0).0;
+        accept_partial(&coord, &job, first.chunk.id, first.epoch, &acc, None).unwrap();
+        let mut c = coord.into_inner().unwrap();
+        c.jobs.get_mut(&job).unwrap().queue.push_front(first.chunk.id);
+        let leased: Vec<u32> =
+            std::iter::from_fn(|| c.lease("w", Instant::now())).map(|l| l.chunk.id).collect();
+        assert_eq!(leased.len(), 3, "{leased:?}");
+        assert!(!leased.contains(&first.chunk.id));
     }
 
     /// Issue 14: an upload in flight when a job was cancelled turned it into done.

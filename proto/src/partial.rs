@@ -46,10 +46,10 @@ fn channel_names() -> Vec<String> {
     names
 }
 
-/// The most bytes a `width` x `height` partial decompresses to: its pixels' words and room for
-/// the EXR header and offset table.
+/// The most bytes a `width` x `height` partial decompresses to: its pixels' words, 16 bytes a
+/// line (offset table entry and block header) and room for the EXR header.
 pub fn partial_size_limit(width: u32, height: u32) -> usize {
-    (width as usize * height as usize) * WORDS * 4 + height as usize * 8 + (64 << 10)
+    (width as usize * height as usize) * WORDS * 4 + height as usize * 16 + (64 << 10)
 }
 
 /// Encodes `acc` (zstd level 1 over an uncompressed EXR).
@@ -243,6 +243,9 @@ mod tests {
         // Bigger than allowed once decompressed; what a partial needs is allowed.
         let big = encode_partial(&Accum::new(0, 0, 64, 64));
         assert!(decode_partial(&big, partial_size_limit(64, 64)).is_ok());
+        // A tall, narrow one too (16 bytes of table and block header a line).
+        let tall = encode_partial(&Accum::new(0, 0, 1, 9000));
+        assert!(decode_partial(&tall, partial_size_limit(1, 9000)).is_ok());
         assert!(matches!(decode_partial(&big, 1000), Err(PartialError::TooLarge(_))));
     }
 }
