@@ -37,6 +37,9 @@ pub struct ServeArgs {
     /// Seconds a client has to send a request's headers.
     #[arg(long, default_value_t = furnace_coordinator::api::HEADER_READ_TIMEOUT.as_secs_f64())]
     pub header_timeout: f64,
+    /// Seconds a request may take, its body included.
+    #[arg(long, default_value_t = furnace_coordinator::api::REQUEST_TIMEOUT.as_secs_f64())]
+    pub request_timeout: f64,
 }
 
 #[derive(Args)]
@@ -179,6 +182,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone());
     state.max_connections = a.max_connections.clamp(1, u32::MAX as usize);
     state.header_timeout = Duration::from_secs_f64(a.header_timeout.clamp(0.1, 3600.0));
+    state.request_timeout = Duration::from_secs_f64(a.request_timeout.clamp(0.1, 86400.0));
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(a.bind)

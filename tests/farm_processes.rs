@@ -186,12 +186,14 @@ fn sigterm_ends_open_event_streams_and_the_coordinator_exits() {
 }
 
 /// Issue 14: idle half-requests held connections forever and, enough of them, made the
-/// coordinator unreachable. Now a client has `--header-timeout` to send its headers and at most
-/// `--max-connections` are served at once, the others waiting to be accepted.
+/// coordinator unreachable. Now a client has `--header-timeout` to send its headers and
+/// `--request-timeout` for the whole request, and at most `--max-connections` are served at
+/// once, the others waiting to be accepted.
 #[test]
 fn idle_half_requests_time_out_and_the_coordinator_stays_reachable() {
     let dir = scratch("farmslow");
-    let (_c, url) = coordinator(&dir.join("data"), &["--max-connections", "8", "--header-timeout", "1"], 0);
+    let limits = ["--max-connections", "8", "--header-timeout", "1", "--request-timeout", "2"];
+    let (_c, url) = coordinator(&dir.join("data"), &limits, 0);
     let addr = url.strip_prefix("http://").unwrap().to_string();
     let idle: Vec<_> = (0..20)
         .map(|_| {
@@ -205,6 +207,15 @@ fn idle_half_requests_time_out_and_the_coordinator_stays_reachable() {
     let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(8)).build().unwrap();
     assert_eq!(http.get(format!("{url}/healthz")).send().unwrap().status().as_u16(), 200);
     assert!(t.elapsed() < Duration::from_secs(6), "answered after {:?}", t.elapsed());
+    // A body trickled slower than --request-timeout allows is answered 408 and closed.
+    let slow = std::net::TcpStream::connect(&addr).unwrap();
+    let head =
+        format!("PUT /v1/files/{} HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n\r\nabc", "0".repeat(64));
+    std::io::Write::write_all(&mut &slow, head.as_bytes()).unwrap();
+    slow.set_read_timeout(Some(Duration::from_secs(8))).unwrap();
+    let mut answer = String::new();
+    BufReader::new(&slow).read_line(&mut answer).unwrap();
+    assert!(answer.contains("408"), "{answer:?}");
     // Every half-request is closed by the server (EOF, or an error response then EOF).
     for s in idle {
         let mut rest = Vec::new();

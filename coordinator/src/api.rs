@@ -34,6 +34,9 @@ pub struct AppState {
     pub max_connections: usize,
     /// Time a client has to send a request's headers ([`HEADER_READ_TIMEOUT`] unless set).
     pub header_timeout: Duration,
+    /// Time a request may take, its body included ([`REQUEST_TIMEOUT`] unless set); an event
+    /// stream's response streams on after it.
+    pub request_timeout: Duration,
 }
 
 /// Scenes loaded at once (each may take a core and much memory while it loads).
@@ -53,6 +56,7 @@ impl AppState {
             closing: Arc::new(tokio::sync::watch::channel(false).0),
             max_connections: MAX_CONNECTIONS,
             header_timeout: HEADER_READ_TIMEOUT,
+            request_timeout: REQUEST_TIMEOUT,
         }
     }
 
@@ -180,6 +184,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/chunks/{chunk}/result", put(upload))
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint (see /v1)") })
         .layer(middleware::from_fn_with_state(state.clone(), auth))
+        .layer(middleware::from_fn_with_state(state.clone(), time_limit))
         .layer(DefaultBodyLimit::max(MAX_BODY))
         .layer(middleware::map_response(json_errors))
         .with_state(state)
@@ -308,6 +313,18 @@ async fn readyz(State(s): State<AppState>) -> Response {
     match tokio::time::timeout(Duration::from_secs(1), probe).await {
         Ok(Ok(jobs)) => Json(serde_json::json!({"ready": true, "jobs": jobs})).into_response(),
         _ => error(StatusCode::SERVICE_UNAVAILABLE, "the coordinator's state is busy"),
+    }
+}
+
+/// A request (body included) that takes longer than the limit is answered 408: a client
+/// trickling its body cannot hold a connection slot.
+async fn time_limit(State(s): State<AppState>, req: Request, next: Next) -> Response {
+    match tokio::time::timeout(s.request_timeout, next.run(req)).await {
+        Ok(r) => r,
+        Err(_) => error(
+            StatusCode::REQUEST_TIMEOUT,
+            format!("the request took longer than {:?}", s.request_timeout),
+        ),
     }
 }
 
@@ -483,7 +500,9 @@ async fn lease(State(s): State<AppState>, body: Bytes) -> ApiResult {
     if req.worker.is_empty() || req.worker.len() > 200 {
         return Err(CoordError::BadRequest("worker name must be 1 to 200 bytes".into()));
     }
-    let until = tokio::time::Instant::now() + Duration::from_millis(req.wait_ms.min(MAX_LEASE_WAIT_MS));
+    // A long poll ends well inside the request time limit.
+    let wait = Duration::from_millis(req.wait_ms.min(MAX_LEASE_WAIT_MS)).min(s.request_timeout / 2);
+    let until = tokio::time::Instant::now() + wait;
     loop {
         // Registered before looking, so that work arriving in between is not missed.
         let woken = s.work.notified();
@@ -608,6 +627,9 @@ pub async fn run(
     }
     Ok(())
 }
+
+/// Time a request may take, reading its body included (a 256 MiB body at 4 MB/s fits).
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(120);
 
 /// How long shutdown waits for requests in flight.
 pub const SHUTDOWN_DRAIN: Duration = Duration::from_secs(60);
