@@ -443,3 +443,25 @@ fn concurrent_submissions_of_one_bundle_leave_its_files_intact() {
     assert_eq!(coord.lock().unwrap().job_ids().len(), 4);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A data folder from before idempotency keys were tied to their spec opens, and takes jobs.
+#[test]
+fn a_database_from_before_request_hashes_is_migrated() {
+    let dir = scratch("coord-migrate");
+    let data = dir.join("data");
+    std::fs::create_dir_all(&data).unwrap();
+    let db = rusqlite::Connection::open(data.join("furnace.db")).unwrap();
+    db.execute_batch(
+        "CREATE TABLE jobs (id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
+             idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);
+         CREATE TABLE meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);",
+    )
+    .unwrap();
+    drop(db);
+    let coord = open_coordinator(&data);
+    let scene = load("small.xml", &[]);
+    let settings = JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() };
+    let job = submit_small(&coord, &scene, settings);
+    assert_eq!(coord.lock().unwrap().status(&job).unwrap().state, JobState::Queued);
+    std::fs::remove_dir_all(&dir).ok();
+}

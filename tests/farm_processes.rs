@@ -465,6 +465,15 @@ fn idempotency_pause_resume_failures_preview_events_and_cancel() {
     let id1: serde_json::Value = r1.json().unwrap();
     let id2: serde_json::Value = r2.json().unwrap();
     assert_eq!(id1["id"], id2["id"]);
+    // The same key with another spec: refused, not the old job.
+    let other = JobSpec {
+        settings: furnace_proto::JobSettings { seed: 99, ..spec.settings.clone() },
+        ..spec.clone()
+    };
+    let r = http.post(format!("{url}/v1/jobs")).header("Idempotency-Key", "k1").json(&other).send().unwrap();
+    assert_eq!(r.status().as_u16(), 409);
+    let e: serde_json::Value = r.json().unwrap();
+    assert!(e["error"].as_str().unwrap().contains("another job spec"), "{e}");
     // Settings left out are the scene's (the README's curl example gives only spp); an
     // unknown field is refused, naming it.
     let b = serde_json::to_value(&spec.bundle).unwrap();

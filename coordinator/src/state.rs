@@ -28,6 +28,27 @@ const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS jobs (
         id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
         idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);
     CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);";
+/// Brings a database made by an earlier version up to date.
+fn migrate(db: &rusqlite::Connection) -> Result<(), CoordError> {
+    let has = |col: &str| -> Result<bool, CoordError> {
+        let n: i64 =
+            db.query_row("SELECT COUNT(*) FROM pragma_table_info('jobs') WHERE name = ?1", [col], |r| {
+                r.get(0)
+            })?;
+        Ok(n > 0)
+    };
+    if !has("request_hash")? {
+        // The hash of the spec an idempotency key was first used with.
+        db.execute_batch("ALTER TABLE jobs ADD COLUMN request_hash TEXT")?;
+    }
+    Ok(())
+}
+
+/// The hash of a submitted spec, as submitted (before the scene fills in its defaults).
+fn request_hash(spec: &JobSpec) -> String {
+    blake3::hash(&serde_json::to_vec(spec).unwrap_or_default()).to_hex().to_string()
+}
+
 /// Failures of one worker on one job after which it gets no more of that job's chunks.
 pub const MAX_FAILURES_PER_WORKER: u32 = 3;
 /// Errors a job keeps for its status (the most recent), and the longest kept, in bytes.
@@ -631,6 +652,7 @@ impl Coordinator {
         db.pragma_update(None, "journal_mode", "WAL")?;
         db.pragma_update(None, "synchronous", "FULL")?;
         db.execute_batch(SCHEMA)?;
+        migrate(&db)?;
         // Epochs after a restart start above every epoch handed out before.
         let boot: i64 =
             db.query_row("SELECT value FROM meta WHERE key = 'boot'", [], |r| r.get(0)).unwrap_or(0) + 1;
@@ -705,6 +727,7 @@ impl Coordinator {
     pub fn ephemeral() -> Result<Coordinator, CoordError> {
         let db = rusqlite::Connection::open_in_memory()?;
         db.execute_batch(SCHEMA)?;
+        migrate(&db)?;
         Ok(Coordinator {
             data: PathBuf::new(),
             persist: false,
@@ -733,9 +756,22 @@ impl Coordinator {
     }
 
     /// The job an idempotency key already names.
-    fn idempotent(&self, key: Option<&str>) -> Option<String> {
-        let k = key?;
-        self.db.query_row("SELECT id FROM jobs WHERE idempotency_key = ?1", [k], |r| r.get(0)).ok()
+    /// A key used again with the same spec names the same job; with another spec, it is
+    /// refused.
+    fn idempotent(&self, key: Option<&str>, request: &str) -> Result<Option<String>, CoordError> {
+        let Some(k) = key else { return Ok(None) };
+        let found: Option<(String, Option<String>)> = self
+            .db
+            .query_row("SELECT id, request_hash FROM jobs WHERE idempotency_key = ?1", [k], |r| {
+                Ok((r.get(0)?, r.get(1)?))
+            })
+            .ok();
+        match found {
+            Some((_, Some(h))) if h != request => {
+                Err(CoordError::Conflict(format!("Idempotency-Key '{k}' was used for another job spec")))
+            }
+            other => Ok(other.map(|(id, _)| id)),
+        }
     }
 
     /// Rebuilds a job after a restart: checkpoint plus every partial not in it.
@@ -842,11 +878,12 @@ impl Coordinator {
 
     /// Submits a job; with an idempotency key already used, returns that job instead.
     pub fn submit(&mut self, spec: JobSpec, key: Option<&str>) -> Result<(String, bool), CoordError> {
-        if let Some(id) = self.idempotent(key) {
+        let request = request_hash(&spec);
+        if let Some(id) = self.idempotent(key, &request)? {
             return Ok((id, false));
         }
         let job = self.loader().submitted(spec, key)?;
-        self.insert_job(job, key)
+        self.insert_job(job, key, &request)
     }
 
     /// Submits a job for a scene already loaded in this process. Such a job has no bundle and
@@ -862,12 +899,18 @@ impl Coordinator {
         Ok(id)
     }
 
-    fn insert_job(&mut self, job: Job, key: Option<&str>) -> Result<(String, bool), CoordError> {
+    fn insert_job(
+        &mut self,
+        job: Job,
+        key: Option<&str>,
+        request: &str,
+    ) -> Result<(String, bool), CoordError> {
         let (id, created) = (job.id.clone(), job.created);
         let spec_json = serde_json::to_string(&job.spec).map_err(|e| CoordError::Internal(e.to_string()))?;
         self.db.execute(
-            "INSERT INTO jobs (id, spec, state, idempotency_key, created) VALUES (?1, ?2, 'queued', ?3, ?4)",
-            rusqlite::params![id, spec_json, key, created as i64],
+            "INSERT INTO jobs (id, spec, state, idempotency_key, created, request_hash)
+             VALUES (?1, ?2, 'queued', ?3, ?4, ?5)",
+            rusqlite::params![id, spec_json, key, created as i64, request],
         )?;
         if self.persist {
             std::fs::create_dir_all(job.dir(&self.data).join("partials"))?;
@@ -1372,9 +1415,10 @@ pub fn submit(
     key: Option<&str>,
 ) -> Result<(String, bool), CoordError> {
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let request = request_hash(&spec);
     let loader = {
         let c = lock();
-        if let Some(id) = c.idempotent(key) {
+        if let Some(id) = c.idempotent(key, &request)? {
             return Ok((id, false));
         }
         c.loader()
@@ -1382,9 +1426,9 @@ pub fn submit(
     let job = loader.submitted(spec, key)?;
     let mut c = lock();
     // A submission with the same key that finished meanwhile wins.
-    match c.idempotent(key) {
+    match c.idempotent(key, &request)? {
         Some(id) => Ok((id, false)),
-        None => c.insert_job(job, key),
+        None => c.insert_job(job, key, &request),
     }
 }
 
