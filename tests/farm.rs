@@ -465,3 +465,56 @@ fn a_database_from_before_request_hashes_is_migrated() {
     assert_eq!(coord.lock().unwrap().status(&job).unwrap().state, JobState::Queued);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Issue 14: a final checkpoint that failed (a full disk) left the job running at 100% until a
+/// restart. The server's timer tries it again; here `retry_checkpoints` is called by hand.
+#[test]
+fn a_failed_final_checkpoint_is_tried_again() {
+    let dir = scratch("coord-retry");
+    let data = dir.join("data");
+    let scene = load("small.xml", &[]);
+    let coord = open_coordinator(&data);
+    coord.lock().unwrap().checkpoint_retry = std::time::Duration::ZERO;
+    let settings = JobSettings {
+        spp: 2,
+        tile_size: 16,
+        spp_per_chunk: 2,
+        seed: 2,
+        width: 0,
+        height: 0,
+        ..JobSettings::default()
+    };
+    let job = submit_small(&coord, &scene, settings);
+    // A folder where the checkpoint goes: renaming the written file onto it fails.
+    let blocker = data.join("jobs").join(&job).join("checkpoint");
+    std::fs::create_dir_all(blocker.join("x")).unwrap();
+    let n = coord.lock().unwrap().status(&job).unwrap().chunks_total as usize;
+    // The last upload's checkpoint fails, so its accept_partial fails.
+    for _ in 0..n {
+        let l = coord.lock().unwrap().lease("w", Instant::now()).unwrap();
+        let acc = render_chunk(&scene, &l.chunk, l.settings.seed).0;
+        let _ = accept_partial(&coord, &l.job, l.chunk.id, l.epoch, &acc, None);
+    }
+    let s = coord.lock().unwrap().status(&job).unwrap();
+    assert_eq!((s.state, s.chunks_done), (JobState::Running, s.chunks_total));
+    assert!(s.errors.iter().any(|e| e.contains("checkpoint failed")), "{:?}", s.errors);
+    furnace_coordinator::state::retry_checkpoints(&coord);
+    assert_eq!(
+        coord.lock().unwrap().status(&job).unwrap().state,
+        JobState::Running,
+        "the disk is still full"
+    );
+    let tmp = std::fs::read_dir(data.join("jobs").join(&job)).unwrap().flatten();
+    assert_eq!(
+        tmp.filter(|e| e.file_name().to_string_lossy().ends_with(".tmp")).count(),
+        0,
+        "temporary files left"
+    );
+    std::fs::remove_dir_all(&blocker).unwrap();
+    furnace_coordinator::state::retry_checkpoints(&coord);
+    let c = coord.lock().unwrap();
+    assert_eq!(c.status(&job).unwrap().state, JobState::Done);
+    assert!(c.image(&job).unwrap().data == render(&scene, 2, 2).0.develop().data);
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -592,6 +592,10 @@ pub async fn run(
             if s.lock().expire_leases(Instant::now()) > 0 {
                 s.new_work();
             }
+            if n % 4 == 0 {
+                let coord = s.coord.clone();
+                tokio::task::spawn_blocking(move || crate::state::retry_checkpoints(&coord));
+            }
         }
     });
     let (closing, cap, timeout) = (state.closing.clone(), state.max_connections, state.header_timeout);

@@ -120,6 +120,8 @@ struct Job {
     since_checkpoint: usize,
     /// A checkpoint is being written (outside the lock).
     checkpointing: bool,
+    /// When the last checkpoint failed (a full disk), for [`retry_checkpoints`].
+    checkpoint_failed: Option<Instant>,
     last_checkpoint: Instant,
     /// Filter margin of the scene, for checking partial sizes.
     margin: u32,
@@ -205,6 +207,7 @@ impl Job {
             checkpointed: HashSet::new(),
             since_checkpoint: 0,
             checkpointing: false,
+            checkpoint_failed: None,
             last_checkpoint: Instant::now(),
             margin: 0,
             render_plan: status.plan.clone(),
@@ -419,6 +422,8 @@ pub struct Coordinator {
     pub max_partial: usize,
     /// Keep each job's loaded scene for workers in this process.
     pub keep_scenes: bool,
+    /// Time between tries of a checkpoint that failed.
+    pub checkpoint_retry: Duration,
     /// Least time between two checkpoints of a job. A checkpoint encodes the job's whole
     /// accumulation (about a second for 1920 x 1080 here); between them, a restart replays the
     /// stored partials.
@@ -439,12 +444,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
     let tmp = dir.join(format!(".{name}.{}.{n}.tmp", std::process::id()));
-    {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
+    let written = std::fs::File::create(&tmp)
+        .and_then(|mut f| f.write_all(bytes).and_then(|_| f.sync_all()))
+        .and_then(|_| std::fs::rename(&tmp, path));
+    if let Err(e) = written {
+        // A full disk or the like: no temporary file is left behind.
+        std::fs::remove_file(&tmp).ok();
+        return Err(e);
     }
-    std::fs::rename(&tmp, path)?;
     if let Ok(d) = std::fs::File::open(dir) {
         d.sync_all().ok();
     }
@@ -623,6 +630,7 @@ impl Loader {
             checkpointed: HashSet::new(),
             since_checkpoint: 0,
             checkpointing: false,
+            checkpoint_failed: None,
             last_checkpoint: Instant::now(),
             failures: HashMap::new(),
             errors: Vec::new(),
@@ -666,6 +674,7 @@ impl Coordinator {
             lease_duration: Duration::from_secs(30),
             max_partial: 256 << 20,
             keep_scenes: false,
+            checkpoint_retry: Duration::from_secs(5),
             checkpoint_interval: Duration::from_secs(10),
             workers: BTreeMap::new(),
         };
@@ -737,6 +746,7 @@ impl Coordinator {
             lease_duration: Duration::from_secs(30),
             max_partial: 256 << 20,
             keep_scenes: true,
+            checkpoint_retry: Duration::from_secs(5),
             checkpoint_interval: Duration::from_secs(10),
             workers: BTreeMap::new(),
         })
@@ -1239,8 +1249,10 @@ impl Coordinator {
         j.checkpointing = false;
         if let Err(e) = result {
             j.record_error(format!("checkpoint failed: {e}"));
+            j.checkpoint_failed = Some(Instant::now());
             return None;
         }
+        j.checkpoint_failed = None;
         j.checkpointed.extend(&snap.ids);
         if snap.finished {
             if let Err(e) = self.set_state(&snap.job, JobState::Done) {
@@ -1396,14 +1408,44 @@ pub fn accept_partial(
         }
     }
     let merged = lock().merge_partial(job, chunk, epoch, acc, Instant::now());
-    let mut snap = merged.inspect_err(|_| count_duplicate(coord, job, chunk))?;
-    // Checkpoints are encoded and written without the lock; leases and uploads go on meanwhile.
+    let snap = merged.inspect_err(|_| count_duplicate(coord, job, chunk))?;
+    write_checkpoints(coord, snap)
+}
+
+/// Writes a checkpoint and those due after it, without the lock: leases and uploads go on
+/// meanwhile.
+fn write_checkpoints(coord: &Mutex<Coordinator>, mut snap: Option<Snapshot>) -> Result<(), CoordError> {
     while let Some(s) = snap {
         let result = s.write();
-        snap = lock().checkpoint_written(&s, &result);
+        snap = coord.lock().unwrap_or_else(|e| e.into_inner()).checkpoint_written(&s, &result);
         result?;
     }
     Ok(())
+}
+
+/// Writes again, at most every `checkpoint_retry`, the final checkpoint of every job whose
+/// last one failed (a full disk): such a job would otherwise stay running at 100% until a
+/// restart. Called by the server's timer.
+pub fn retry_checkpoints(coord: &Mutex<Coordinator>) {
+    let snaps: Vec<Snapshot> = {
+        let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
+        let (data, retry) = (c.data.clone(), c.checkpoint_retry);
+        c.jobs
+            .values_mut()
+            .filter(|j| !j.checkpointing && j.checkpoint_failed.is_some_and(|t| t.elapsed() >= retry))
+            .filter(|j| !matches!(j.state, JobState::Done | JobState::Cancelled))
+            .filter_map(|j| {
+                j.checkpoint_failed = None;
+                j.snapshot(&data, Duration::ZERO)
+            })
+            .collect()
+    };
+    for s in snaps {
+        let job = s.job.clone();
+        if let Err(e) = write_checkpoints(coord, Some(s)) {
+            tracing::warn!(job = %job, "checkpoint retry failed: {e}");
+        }
+    }
 }
 
 /// Submits a job, locking the coordinator only to look up the idempotency key and to insert
