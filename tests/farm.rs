@@ -518,3 +518,28 @@ fn a_failed_final_checkpoint_is_tried_again() {
     drop(c);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A job left out at a start (its scene files gone) can still be deleted; ids that are not
+/// job ids (`..`) are not found.
+#[test]
+fn a_job_left_out_at_start_can_be_deleted() {
+    let dir = scratch("coord-delete");
+    let data = dir.join("data");
+    let scene = load("small.xml", &[]);
+    let coord = open_coordinator(&data);
+    let job =
+        submit_small(&coord, &scene, JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() });
+    drop(coord);
+    std::fs::remove_dir_all(data.join("bundles")).unwrap();
+    std::fs::remove_dir_all(data.join("files")).unwrap();
+    let coord = open_coordinator(&data);
+    let mut c = coord.lock().unwrap();
+    assert!(matches!(c.status(&job), Err(CoordError::NotFound(_))));
+    for bad in ["..", "", "a/b"] {
+        assert!(matches!(c.delete(bad), Err(CoordError::NotFound(_))), "{bad:?}");
+    }
+    assert_eq!(c.delete(&job).unwrap(), data.join("jobs").join(&job));
+    assert!(matches!(c.delete(&job), Err(CoordError::NotFound(_))));
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -54,6 +54,8 @@ pub const MAX_FAILURES_PER_WORKER: u32 = 3;
 /// Errors a job keeps for its status (the most recent), and the longest kept, in bytes.
 pub const MAX_ERRORS: usize = 100;
 pub const MAX_ERROR_BYTES: usize = 2048;
+/// Workers a job's status lists (the most recent).
+pub const MAX_JOB_WORKERS: usize = 1000;
 
 #[derive(Debug, thiserror::Error)]
 pub enum CoordError {
@@ -1022,6 +1024,11 @@ impl Coordinator {
         };
         job.chunks[chunk as usize] =
             ChunkState::Leased { epoch, worker: worker.to_string(), deadline, since: now };
+        if job.workers.len() >= MAX_JOB_WORKERS && !job.workers.contains_key(worker) {
+            // The longest silent one makes room: a status lists a bounded number of workers.
+            let oldest = job.workers.iter().min_by_key(|(_, t)| **t).map(|(w, _)| w.clone());
+            oldest.map(|w| job.workers.remove(&w));
+        }
         job.workers.insert(worker.to_string(), now);
         if job.state == JobState::Queued {
             job.state = JobState::Running;
@@ -1345,9 +1352,15 @@ impl Coordinator {
     /// Forgets a job: its row, its state in memory; returns its folder, for the caller to
     /// remove outside the lock. Leases of it are refused from now on.
     pub fn delete(&mut self, id: &str) -> Result<PathBuf, CoordError> {
-        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
-        let dir = j.dir(&self.data);
-        self.db.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
+        if id.is_empty() || !id.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') {
+            return Err(CoordError::NotFound(format!("no job '{id}'")));
+        }
+        // A job left out at the last start (its scene files gone) has a row but no state.
+        let rows = self.db.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
+        if rows == 0 && !self.jobs.contains_key(id) {
+            return Err(CoordError::NotFound(format!("no job '{id}'")));
+        }
+        let dir = self.data.join("jobs").join(id);
         self.jobs.remove(id);
         tracing::info!(job = %id, "job deleted");
         Ok(dir)
