@@ -391,7 +391,8 @@ impl Link for HttpLink {
             // keep its health file fresh.
             self.answered();
         }
-        !matches!(r, Ok(resp) if resp.status() == StatusCode::CONFLICT)
+        // The lease is gone (revoked, taken over, or its job deleted): stop heartbeating.
+        !matches!(r, Ok(resp) if matches!(resp.status(), StatusCode::CONFLICT | StatusCode::NOT_FOUND))
     }
 
     fn scene(&self, l: &Lease) -> Result<Arc<Scene>, String> {
