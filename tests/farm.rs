@@ -399,12 +399,18 @@ fn finished_jobs_release_their_memory_restart_without_their_scene_and_can_be_del
     assert_eq!(c.status(&job).unwrap(), status);
     assert_eq!(c.held_bytes(&job).unwrap(), 0);
     assert!(c.image(&job).unwrap().data == image.data);
-    // Deleted: gone from memory and the database; the caller removes the folder.
-    let job_dir = c.delete(&job).unwrap();
+    // Deleted: gone from memory and the database; the caller removes its folder and the
+    // files no other job uses (here: every file of its bundle).
+    let gone = c.delete(&job).unwrap();
+    assert_eq!(gone[0], data.join("jobs").join(&job));
+    let (bundle, _) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
+    for h in bundle.files.values() {
+        assert!(gone.contains(&c.file_path(h)), "{h} is not removed");
+    }
     assert!(matches!(c.status(&job), Err(CoordError::NotFound(_))));
     drop(c);
     drop(coord);
-    std::fs::remove_dir_all(&job_dir).unwrap();
+    std::fs::remove_dir_all(&gone[0]).unwrap();
     let coord = open_coordinator(&data);
     assert!(coord.lock().unwrap().job_ids().is_empty());
     std::fs::remove_dir_all(&dir).ok();
@@ -538,8 +544,30 @@ fn a_job_left_out_at_start_can_be_deleted() {
     for bad in ["..", "", "a/b"] {
         assert!(matches!(c.delete(bad), Err(CoordError::NotFound(_))), "{bad:?}");
     }
-    assert_eq!(c.delete(&job).unwrap(), data.join("jobs").join(&job));
+    assert_eq!(c.delete(&job).unwrap()[0], data.join("jobs").join(&job));
     assert!(matches!(c.delete(&job), Err(CoordError::NotFound(_))));
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Deleting a job removes its bundle's stored files only when no other job uses them.
+#[test]
+fn deleting_a_job_keeps_the_files_other_jobs_use() {
+    let dir = scratch("coord-gc");
+    let scene = load("small.xml", &[]);
+    let coord = open_coordinator(&dir.join("data"));
+    let settings = JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() };
+    let a = submit_small(&coord, &scene, settings.clone());
+    let b = submit_small(&coord, &scene, JobSettings { seed: 1, ..settings });
+    let mut c = coord.lock().unwrap();
+    let (bundle, _) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
+    let first = c.delete(&a).unwrap();
+    assert_eq!(first, vec![dir.join("data/jobs").join(&a)], "b still uses the files");
+    let second = c.delete(&b).unwrap();
+    for h in bundle.files.values() {
+        assert!(second.contains(&c.file_path(h)));
+    }
+    assert!(second.iter().any(|p| p.ends_with(format!("bundles/{}", bundle.hash()))));
     drop(c);
     std::fs::remove_dir_all(&dir).ok();
 }

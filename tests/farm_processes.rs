@@ -535,6 +535,11 @@ fn idempotency_pause_resume_failures_preview_events_and_cancel() {
     let ev: serde_json::Value = serde_json::from_str(data.trim()).unwrap();
     assert_eq!(ev["state"], "cancelled");
     assert_eq!(get(&format!("{url}/v1/jobs/{job}/result.exr")).0, 409);
+    // Deleted: 204, then gone, its folder too.
+    assert_eq!(http.delete(format!("{url}/v1/jobs/{job}")).send().unwrap().status().as_u16(), 204);
+    assert_eq!(get(&format!("{url}/v1/jobs/{job}")).0, 404);
+    assert_eq!(http.delete(format!("{url}/v1/jobs/{job}")).send().unwrap().status().as_u16(), 404);
+    assert!(!dir.join("data/jobs").join(&job).exists());
     std::fs::remove_dir_all(&dir).ok();
 }
 

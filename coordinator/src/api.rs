@@ -451,13 +451,19 @@ async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
 }
 
 async fn delete_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
-    let dir = s.lock().delete(&id)?;
-    let removed = tokio::task::spawn_blocking(move || std::fs::remove_dir_all(&dir)).await;
-    if let Ok(Err(e)) = removed {
-        if e.kind() != std::io::ErrorKind::NotFound {
-            tracing::warn!(job = %id, "removing the job's files: {e}");
+    let paths = s.lock().delete(&id)?;
+    tokio::task::spawn_blocking(move || {
+        for p in paths {
+            let removed = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
+            if let Err(e) = removed.map_err(|e| (e.kind(), e)) {
+                if e.0 != std::io::ErrorKind::NotFound {
+                    tracing::warn!(job = %id, "removing {}: {}", p.display(), e.1);
+                }
+            }
         }
-    }
+    })
+    .await
+    .ok();
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 

@@ -763,6 +763,10 @@ impl Coordinator {
         self.loader().file_path(hash)
     }
 
+    fn bundle_dir(&self, hash: &str) -> PathBuf {
+        self.loader().bundle_dir(hash)
+    }
+
     fn loader(&self) -> Loader {
         Loader { data: self.data.clone(), keep_scenes: self.keep_scenes }
     }
@@ -1349,21 +1353,46 @@ impl Coordinator {
             + j.tile_est.capacity() * 8)
     }
 
-    /// Forgets a job: its row, its state in memory; returns its folder, for the caller to
-    /// remove outside the lock. Leases of it are refused from now on.
-    pub fn delete(&mut self, id: &str) -> Result<PathBuf, CoordError> {
+    /// Forgets a job: its row, its state in memory; returns its folder and the bundle and
+    /// stored files no other job uses, for the caller to remove outside the lock. Leases of it
+    /// are refused from now on.
+    pub fn delete(&mut self, id: &str) -> Result<Vec<PathBuf>, CoordError> {
         if id.is_empty() || !id.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') {
             return Err(CoordError::NotFound(format!("no job '{id}'")));
         }
         // A job left out at the last start (its scene files gone) has a row but no state.
+        let spec: Option<String> =
+            self.db.query_row("SELECT spec FROM jobs WHERE id = ?1", [id], |r| r.get(0)).ok();
         let rows = self.db.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
         if rows == 0 && !self.jobs.contains_key(id) {
             return Err(CoordError::NotFound(format!("no job '{id}'")));
         }
-        let dir = self.data.join("jobs").join(id);
         self.jobs.remove(id);
+        let mut gone = vec![self.data.join("jobs").join(id)];
+        // Its bundle and stored files too, unless another job uses them.
+        if let Some(bundle) = spec.and_then(|s| serde_json::from_str::<JobSpec>(&s).ok()).map(|s| s.bundle) {
+            let others: Vec<Bundle> = {
+                let mut st = self.db.prepare("SELECT spec FROM jobs")?;
+                let specs = st.query_map([], |r| r.get::<_, String>(0))?;
+                specs
+                    .flatten()
+                    .filter_map(|s| serde_json::from_str::<JobSpec>(&s).ok())
+                    .map(|s| s.bundle)
+                    .collect()
+            };
+            let hash = bundle.hash();
+            if !others.iter().any(|b| b.hash() == hash) {
+                gone.push(self.bundle_dir(&hash));
+                gone.push(self.data.join("bundles").join(format!("{hash}.json")));
+            }
+            for h in bundle.files.values() {
+                if !others.iter().any(|b| b.files.values().any(|o| o == h)) {
+                    gone.push(self.file_path(h));
+                }
+            }
+        }
         tracing::info!(job = %id, "job deleted");
-        Ok(dir)
+        Ok(gone)
     }
 
     /// Releases a finished job's memory, keeping its final status (also written to
