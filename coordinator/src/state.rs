@@ -193,15 +193,33 @@ impl Job {
 
     /// A finished job as a restart restores it: its final status, nothing else.
     fn finished(id: String, spec: JobSpec, created: u64, status: JobStatus) -> Job {
-        let mut job = Job {
+        let mut job = Job::new(id, spec, JobState::Done, created, Vec::new(), Accum::new(0, 0, 0, 0));
+        job.render_plan = status.plan.clone();
+        job.errors = status.errors.clone();
+        job.samples_done = status.samples_done;
+        job.accum.dropped = status.dropped_samples;
+        job.release(status);
+        job
+    }
+
+    /// A job with its plan and accumulation, every chunk pending, nothing queued yet.
+    fn new(
+        id: String,
+        spec: JobSpec,
+        state: JobState,
+        created: u64,
+        plan: Vec<ChunkSpec>,
+        accum: Accum,
+    ) -> Job {
+        Job {
             bundle_hash: spec.bundle.hash(),
             id,
             spec,
-            state: JobState::Done,
-            plan: Vec::new(),
-            chunks: Vec::new(),
+            state,
+            chunks: vec![ChunkState::Pending; plan.len()],
+            plan,
             queue: VecDeque::new(),
-            accum: Accum::new(0, 0, 0, 0),
+            accum,
             merged: HashSet::new(),
             skipped: HashSet::new(),
             tile_est: Vec::new(),
@@ -212,19 +230,16 @@ impl Job {
             checkpoint_failed: None,
             last_checkpoint: Instant::now(),
             margin: 0,
-            render_plan: status.plan.clone(),
+            render_plan: String::new(),
             failures: HashMap::new(),
-            errors: status.errors.clone(),
+            errors: Vec::new(),
             scene: None,
             workers: BTreeMap::new(),
             recent: VecDeque::new(),
-            samples_done: status.samples_done,
+            samples_done: 0,
             created,
             final_status: None,
-        };
-        job.accum.dropped = status.dropped_samples;
-        job.release(status);
-        job
+        }
     }
 
     /// Keeps `status` as the job's final status and lets go of everything else.
@@ -614,35 +629,13 @@ impl Loader {
         // Noise-target jobs hand out a tile's next pass only once its last one is judged.
         let first = if s.target_rel_error.is_some() { (s.tiles() as usize).min(n) } else { n };
         let tiles = s.tiles() as usize;
-        Ok(Job {
-            id,
-            bundle_hash: spec.bundle.hash(),
-            accum: Accum::new(0, 0, w, h),
-            margin: scene.film.filter.margin(),
-            render_plan: scene.plan.to_string(),
-            spec,
-            state,
-            chunks: vec![ChunkState::Pending; n],
-            queue: (0..first as u32).collect(),
-            plan,
-            merged: HashSet::new(),
-            skipped: HashSet::new(),
-            tile_est: vec![f64::NAN; tiles],
-            est_cache: std::cell::Cell::new(None),
-            checkpointed: HashSet::new(),
-            since_checkpoint: 0,
-            checkpointing: false,
-            checkpoint_failed: None,
-            last_checkpoint: Instant::now(),
-            failures: HashMap::new(),
-            errors: Vec::new(),
-            workers: BTreeMap::new(),
-            recent: VecDeque::new(),
-            samples_done: 0,
-            created,
-            scene: self.keep_scenes.then_some(scene),
-            final_status: None,
-        })
+        let mut job = Job::new(id, spec, state, created, plan, Accum::new(0, 0, w, h));
+        job.queue = (0..first as u32).collect();
+        job.tile_est = vec![f64::NAN; tiles];
+        job.margin = scene.film.filter.margin();
+        job.render_plan = scene.plan.to_string();
+        job.scene = self.keep_scenes.then_some(scene);
+        Ok(job)
     }
 }
 
