@@ -147,7 +147,9 @@ fn a_poisoned_cache_changes_nothing() {
     std::fs::create_dir_all(&laid_out).unwrap();
     std::os::unix::fs::symlink(&victim, laid_out.join("small.xml")).unwrap();
     let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    // Two workers share the cache: each lays bundles out in a folder of its own.
     let _w = worker(&url, "w", &cache);
+    let _w2 = worker(&url, "w2", &cache);
     let job = submit(&url, "small.xml", 4, 4);
     let farm = wait_done(&url, &job, Duration::from_secs(60));
     assert!(farm == local_render(&dir, "small.xml", 4), "a poisoned cache changed the image");

@@ -332,10 +332,13 @@ impl HttpLink {
             return Err(format!("bundle manifest does not hash to {bundle_hash}"));
         }
         // Nothing on disk is trusted: a cached file is used only if it is a plain file that
-        // still hashes to its name, and the bundle's folder is laid out anew from those bytes
-        // (removing a planted link removes the link, never what it points to; new files are
-        // renamed into place, which replaces a link instead of writing through it).
-        let dir = self.cache.join("bundles").join(bundle_hash);
+        // still hashes to its name, and the bundle is laid out from those bytes in a folder of
+        // this load's own (no other load or worker process sharing the cache touches it; new
+        // files are renamed into place, which replaces a link instead of writing through it),
+        // then removed once the scene is in memory.
+        static LOADS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = LOADS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = self.cache.join("bundles").join(format!("{bundle_hash}.{}.{n}", std::process::id()));
         let cache_err = |p: &Path, e: std::io::Error| format!("cache {}: {e}", p.display());
         match std::fs::symlink_metadata(&dir) {
             Ok(m) if m.is_dir() => std::fs::remove_dir_all(&dir),
@@ -359,7 +362,9 @@ impl HttpLink {
             let dst = dir.join(path);
             write_file(&dst, &bytes).map_err(|e| cache_err(&dst, e))?;
         }
-        Scene::load(&dir.join(&bundle.scene), &[]).map_err(|e| e.to_string())
+        let scene = Scene::load(&dir.join(&bundle.scene), &[]).map_err(|e| e.to_string());
+        std::fs::remove_dir_all(&dir).ok();
+        scene
     }
 }
 
@@ -485,7 +490,9 @@ fn write_file(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     if let Some(p) = path.parent() {
         std::fs::create_dir_all(p)?;
     }
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = path.with_extension(format!("tmp{}.{n}", std::process::id()));
     std::fs::write(&tmp, bytes)?;
     std::fs::rename(tmp, path)
 }
