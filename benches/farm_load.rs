@@ -2,6 +2,12 @@
 //! serves to many small simulated workers, and how many MB/s of partials it stores and merges.
 //!
 //!   cargo bench --bench farm_load [-- --workers 1,4,16,64] [--data DIR]
+//!   cargo bench --bench farm_load -- --soak SECONDS [--workers 200]
+//!
+//! `--soak`: one coordinator, job after job (cbox, 16x16-pixel chunks x 1 sample x 8 passes,
+//! 2048 chunks) driven by that many simulated workers for that long; every finished job's image
+//! must equal the merge of its partials (nothing lost, nothing merged twice), and the process's
+//! resident memory is printed after each job (finished jobs release theirs).
 //!
 //! The simulated workers render nothing while timed: every chunk's partial is rendered and
 //! encoded beforehand, so the numbers are the coordinator's (HTTP, decode, checks, fsync of
@@ -150,6 +156,53 @@ fn run_case(
     (trips as f64 / secs, bytes as f64 / secs / 1e6, raw as f64 / secs / 1e6)
 }
 
+/// Resident memory of this process, in MB (Linux).
+fn rss_mb() -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let kb = status.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.split_whitespace().next());
+    kb.and_then(|k| k.parse::<f64>().ok()).unwrap_or(0.0) / 1024.0
+}
+
+fn soak(base: &Path, scene_path: &Path, scene: &Scene, settings: &JobSettings, workers: usize, secs: f64) {
+    let (partials, _) = prerender(scene, settings);
+    let mut expected = furnace_core::Accum::new(0, 0, settings.width, settings.height);
+    for p in partials.iter() {
+        expected.merge(&furnace_proto::decode_partial(p, 1 << 30).expect("own partial"));
+    }
+    let expected = expected.develop();
+    let data = base.join("soak");
+    std::fs::remove_dir_all(&data).ok();
+    let server = serve(&data);
+    let t = Instant::now();
+    let (mut jobs, mut trips, mut rss) = (0u64, 0u64, Vec::new());
+    println!("soak: {workers} workers, {} chunks a job, {secs} s", partials.len());
+    println!("{:>6} {:>10} {:>14} {:>10}", "job", "seconds", "round trips/s", "RSS MB");
+    while t.elapsed().as_secs_f64() < secs {
+        let job = submit(&server, scene_path, scene, settings);
+        let (n, _, s) = drive(&server.url, workers, &partials);
+        let c = server.coord.lock().expect("lock");
+        let st = c.status(&job).expect("status");
+        assert_eq!(st.state, JobState::Done, "job {jobs} not done");
+        assert_eq!(st.samples_done, st.samples_total, "job {jobs}: samples lost or counted twice");
+        assert!(c.image(&job).expect("image").data == expected.data, "job {jobs}: image differs");
+        drop(c);
+        jobs += 1;
+        trips += n;
+        rss.push(rss_mb());
+        println!("{jobs:>6} {:>10.1} {:>14.0} {:>10.1}", t.elapsed().as_secs_f64(), n as f64 / s, rss_mb());
+    }
+    let max = rss.iter().cloned().fold(0.0, f64::max);
+    println!(
+        "soak: {jobs} jobs, {trips} round trips in {:.0} s ({:.0}/s), every image exact; RSS after the first job {:.1} MB, after the last {:.1} MB, most {max:.1} MB",
+        t.elapsed().as_secs_f64(),
+        trips as f64 / t.elapsed().as_secs_f64(),
+        rss[0],
+        rss[rss.len() - 1]
+    );
+    drop(server);
+    std::fs::remove_dir_all(&data).ok();
+}
+
 fn main() {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -160,6 +213,7 @@ fn main() {
         .init();
     let mut workers = vec![1usize, 4, 16, 64];
     let mut base = std::env::temp_dir();
+    let mut soak_secs: Option<f64> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -172,6 +226,7 @@ fn main() {
                     .collect()
             }
             "--data" => base = PathBuf::from(args.next().expect("--data DIR")),
+            "--soak" => soak_secs = Some(args.next().and_then(|v| v.parse().ok()).expect("--soak SECONDS")),
             _ => {} // cargo bench passes --bench
         }
     }
@@ -189,6 +244,12 @@ fn main() {
         priority: 0,
         target_rel_error: None,
     };
+    if let Some(secs) = soak_secs {
+        let n = if workers == [1, 4, 16, 64] { 200 } else { workers[0] };
+        soak(&base, &scene_path, &scene, &settings(16, 8), n, secs);
+        std::fs::remove_dir_all(&base).ok();
+        return;
+    }
     // Small chunks: 8 x 8 pixels x 1 sample, 4096 of them. Round trips per second.
     println!("round trips: cbox {w}x{h}, 8x8-pixel chunks of 1 sample, 4096 chunks");
     println!("{:>8} {:>14} {:>12}", "workers", "round trips/s", "MB/s wire");
