@@ -256,6 +256,7 @@ impl Job {
         self.tile_est = Vec::new();
         self.recent = VecDeque::new();
         self.failures = HashMap::new();
+        self.workers = BTreeMap::new(); // the final status lists them
         self.scene = None;
         self.final_status = Some(Box::new(status));
     }
