@@ -73,13 +73,8 @@ impl JobSettings {
     /// with checked arithmetic, before anything is planned or allocated; returns the number of
     /// chunks. The error names the limit.
     pub fn check_limits(&self) -> Result<u64, String> {
-        use furnace_core::scene::build::{MAX_FILM_PIXELS, MAX_FILM_SIDE};
         let (w, h) = (self.width, self.height);
-        if w > MAX_FILM_SIDE || h > MAX_FILM_SIDE || w as u64 * h as u64 > MAX_FILM_PIXELS {
-            return Err(format!(
-                "a {w} x {h} image is too large: at most {MAX_FILM_SIDE} pixels a side and {MAX_FILM_PIXELS} in all"
-            ));
-        }
+        furnace_core::scene::build::check_film_size(w, h)?;
         if self.tile_size == 0 || self.spp_per_chunk == 0 {
             return Err("tile_size and spp_per_chunk must be positive".into());
         }
@@ -445,7 +440,7 @@ mod tests {
         refused(careless, "268435456 chunks, more than the limit of 1048576");
         refused(JobSettings { width: 65536, height: 65536, ..ok.clone() }, "at most 65535 pixels a side");
         refused(JobSettings { width: u32::MAX, height: 1, ..ok.clone() }, "at most 65535 pixels a side");
-        refused(JobSettings { width: 65535, height: 65535, ..ok.clone() }, "33554432 in all");
+        refused(JobSettings { width: 65535, height: 65535, ..ok.clone() }, "33554432 (2^25) in all");
         refused(JobSettings { tile_size: 0, ..ok.clone() }, "must be positive");
         let huge_tiles = JobSettings { tile_size: u32::MAX, spp_per_chunk: u64::MAX, spp: 16, ..ok.clone() };
         assert_eq!(huge_tiles.check_limits(), Ok(1));

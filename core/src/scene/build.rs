@@ -7,12 +7,6 @@ use std::sync::Arc;
 use glam::{Mat3, Mat4, Vec3};
 
 use super::xml::{Doc, Pos, MAX_COORD};
-
-/// The largest film side, in pixels.
-pub const MAX_FILM_SIDE: u32 = 65535;
-/// The most pixels a film may have (8K UHD is 2^24.98): a job's accumulation takes 96 bytes a
-/// pixel, 3.2 GB at this limit.
-pub const MAX_FILM_PIXELS: u64 = 1 << 25;
 use super::{FilmSettings, PathSettings, Scene, SceneError};
 use crate::bsdf::conductor::{conductor_preset, CONDUCTOR_PRESETS};
 use crate::bsdf::microfacet::fresnel_diffuse_reflectance;
@@ -28,6 +22,23 @@ use crate::texture::{
 };
 
 type R<T> = Result<T, SceneError>;
+
+/// The largest film side, in pixels.
+pub const MAX_FILM_SIDE: u32 = 65535;
+/// The most pixels a film may have (8K UHD is 2^24.98): a job's accumulation takes 96 bytes a
+/// pixel, 3.2 GB at this limit.
+pub const MAX_FILM_PIXELS: u64 = 1 << 25;
+
+/// Checks a film's (or a job's image's) size against [`MAX_FILM_SIDE`] and
+/// [`MAX_FILM_PIXELS`]; the error names both.
+pub fn check_film_size(width: u32, height: u32) -> Result<(), String> {
+    if width > MAX_FILM_SIDE || height > MAX_FILM_SIDE || width as u64 * height as u64 > MAX_FILM_PIXELS {
+        return Err(format!(
+            "a {width} x {height} film is too large: at most {MAX_FILM_SIDE} pixels a side and {MAX_FILM_PIXELS} (2^25) in all"
+        ));
+    }
+    Ok(())
+}
 
 struct Builder<'d> {
     doc: &'d Doc,
@@ -243,12 +254,7 @@ impl Builder<'_> {
         }
         let width = self.positive_int(i, "width", 768)?;
         let height = self.positive_int(i, "height", 576)?;
-        if width > MAX_FILM_SIDE || height > MAX_FILM_SIDE || width as u64 * height as u64 > MAX_FILM_PIXELS {
-            return Err(self.err(
-                doc.obj(i).pos,
-                format!("a {width} x {height} film is too large: at most {MAX_FILM_SIDE} pixels a side and {MAX_FILM_PIXELS} (2^25) in all"),
-            ));
-        }
+        check_film_size(width, height).map_err(|e| self.err(doc.obj(i).pos, e))?;
         let crop_x = doc.int_or(i, "crop_offset_x", 0)?;
         let crop_y = doc.int_or(i, "crop_offset_y", 0)?;
         let crop_w = doc.int_or(i, "crop_width", width as i64 - crop_x)?;
