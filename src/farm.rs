@@ -194,7 +194,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         tracing::info!("coordinator on http://{addr}, data in {}", a.data_dir.display());
         let stop = Arc::new(AtomicBool::new(false));
         let mut locals = Vec::new();
-        let link = Arc::new(furnace_worker::LocalLink::new(state.coord.clone()));
+        let link = Arc::new(furnace::local::LocalLink::new(state.coord.clone()));
         for i in 0..a.local_workers {
             let cfg = furnace_worker::WorkerConfig {
                 link: link.clone(),
@@ -304,7 +304,7 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
     let key = blake3::hash(serde_json::to_string(&spec)?.as_bytes()).to_hex()[..32].to_string();
     let key = format!("{key}-{}", std::process::id());
     let r = api.req(reqwest::Method::POST, "/v1/jobs").header("Idempotency-Key", key).json(&spec).send()?;
-    let id = Api::check(r)?.json::<serde_json::Value>()?["id"].as_str().unwrap_or_default().to_string();
+    let id = Api::check(r)?.json::<furnace_proto::Submitted>()?.id;
     println!("{id}");
     if !a.wait {
         return Ok(());

@@ -7,10 +7,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
+use furnace::local::LocalLink;
 use furnace_coordinator::Coordinator;
 use furnace_core::{Image, Scene, Stats};
 use furnace_proto::{JobSettings, JobState};
-use furnace_worker::{LocalLink, WorkerConfig};
+use furnace_worker::WorkerConfig;
 
 mod farm;
 mod plot;

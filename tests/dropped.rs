@@ -9,10 +9,11 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use common::*;
+use furnace::local::LocalLink;
 use furnace_coordinator::Coordinator;
 use furnace_core::{Dropped, Scene};
 use furnace_proto::{decode_partial, encode_partial, JobSettings, JobState, JobStatus};
-use furnace_worker::{LocalLink, WorkerConfig};
+use furnace_worker::WorkerConfig;
 
 /// A diffuse floor lit by a tiny sphere light of enormous radiance: light sampling finds it
 /// with finite contributions, but the few camera and BSDF paths that hit it directly carry

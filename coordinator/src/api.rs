@@ -11,7 +11,10 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
 use axum::{Json, Router};
-use furnace_proto::{decode_partial, is_hash, ApiError, Heartbeat, JobSpec, LeaseRequest, MAX_LEASE_WAIT_MS};
+use furnace_proto::{
+    decode_partial, is_hash, ApiError, FailureReport, Heartbeat, HeartbeatReply, JobSpec, LeaseRequest,
+    Priority, Ready, Stored, Submitted, MAX_LEASE_WAIT_MS,
+};
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
 use serde::Deserialize;
 use tokio::sync::Notify;
@@ -311,7 +314,7 @@ async fn readyz(State(s): State<AppState>) -> Response {
     let coord = s.coord.clone();
     let probe = tokio::task::spawn_blocking(move || coord.lock().map(|c| c.job_ids().len()).unwrap_or(0));
     match tokio::time::timeout(Duration::from_secs(1), probe).await {
-        Ok(Ok(jobs)) => Json(serde_json::json!({"ready": true, "jobs": jobs})).into_response(),
+        Ok(Ok(jobs)) => Json(Ready { ready: true, jobs: jobs as u64 }).into_response(),
         _ => error(StatusCode::SERVICE_UNAVAILABLE, "the coordinator's state is busy"),
     }
 }
@@ -367,7 +370,7 @@ async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: Byt
     .await
     .map_err(|e| CoordError::Internal(e.to_string()))??;
     let code = if stored { StatusCode::CREATED } else { StatusCode::OK };
-    Ok((code, Json(serde_json::json!({"stored": stored}))).into_response())
+    Ok((code, Json(Stored { stored })).into_response())
 }
 
 async fn head_file(State(s): State<AppState>, Path(hash): Path<String>) -> StatusCode {
@@ -413,7 +416,7 @@ async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) ->
     .map_err(|e| CoordError::Internal(e.to_string()))??;
     s.new_work();
     let status = if created { StatusCode::CREATED } else { StatusCode::OK };
-    Ok((status, Json(serde_json::json!({"id": id}))).into_response())
+    Ok((status, Json(Submitted { id })).into_response())
 }
 
 async fn list_jobs(State(s): State<AppState>) -> ApiResult {
@@ -489,11 +492,6 @@ async fn control(State(s): State<AppState>, Path((id, action)): Path<(String, St
     Ok(Json(s.lock().status(&id)?).into_response())
 }
 
-#[derive(Deserialize)]
-struct Priority {
-    priority: i32,
-}
-
 async fn priority(State(s): State<AppState>, Path(id): Path<String>, body: Bytes) -> ApiResult {
     let p: Priority = json_body(&body, "priority")?;
     s.lock().set_priority(&id, p.priority)?;
@@ -534,18 +532,11 @@ async fn heartbeat(
 ) -> ApiResult {
     let hb: Heartbeat = json_body(&body, "heartbeat")?;
     let ms = s.lock().heartbeat(&id, chunk, hb.epoch, Instant::now())?;
-    Ok(Json(serde_json::json!({"deadline_ms": ms})).into_response())
-}
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Failure {
-    epoch: u64,
-    error: String,
+    Ok(Json(HeartbeatReply { deadline_ms: ms }).into_response())
 }
 
 async fn fail(State(s): State<AppState>, Path((id, chunk)): Path<(String, u32)>, body: Bytes) -> ApiResult {
-    let f: Failure = json_body(&body, "failure report")?;
+    let f: FailureReport = json_body(&body, "failure report")?;
     s.lock().fail(&id, chunk, f.epoch, &f.error)?;
     s.new_work();
     Ok(StatusCode::NO_CONTENT.into_response())

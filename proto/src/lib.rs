@@ -3,7 +3,9 @@
 //!
 //! - [`JobSettings`] and [`chunk_plan`]: the plan is a pure function of the settings.
 //! - [`Bundle`]: a scene and its assets by content hash; [`JobSpec`] what a client submits.
-//! - [`Lease`], [`Heartbeat`], [`JobStatus`], [`ApiError`]: the JSON of the HTTP API.
+//! - [`Lease`], [`Heartbeat`], [`JobStatus`], [`ApiError`] and the rest: the JSON of every
+//!   request and response of the HTTP API.
+//! - [`Link`]: how a worker reaches a coordinator, over HTTP or in one process.
 //! - [`encode_partial`] / [`decode_partial`]: a chunk's partial accumulation as an EXR with
 //!   named integer channels and the tile position as the EXR data window, zstd on the wire.
 
@@ -14,7 +16,9 @@ pub use furnace_core::Region;
 use serde::{Deserialize, Serialize};
 
 pub mod fuzz;
+mod link;
 mod partial;
+pub use link::{Link, Uploaded};
 pub use partial::{decode_partial, encode_partial, partial_size_limit, PartialError};
 
 /// The API's path prefix.
@@ -254,6 +258,51 @@ pub struct Heartbeat {
     pub epoch: u64,
 }
 
+/// `POST /v1/jobs/{id}/chunks/{chunk}/heartbeat`: the lease's new deadline, in milliseconds
+/// from now.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HeartbeatReply {
+    pub deadline_ms: u64,
+}
+
+/// `POST /v1/jobs/{id}/chunks/{chunk}/fail`: a worker could not render its leased chunk.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FailureReport {
+    pub epoch: u64,
+    pub error: String,
+}
+
+/// `POST /v1/jobs`: the job's id (a new job, or the one its idempotency key names).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Submitted {
+    pub id: String,
+}
+
+/// `PUT /v1/files/{hash}`: whether the file was new (201) or already stored (200).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Stored {
+    pub stored: bool,
+}
+
+/// `POST /v1/jobs/{id}/priority`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Priority {
+    pub priority: i32,
+}
+
+/// `GET /readyz`: the coordinator's state answers, and how many jobs it holds.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ready {
+    pub ready: bool,
+    pub jobs: u64,
+}
+
 /// Every refusal: a 4xx with this body.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ApiError {
@@ -372,6 +421,26 @@ pub(crate) fn pixel_from_words(w: &[u32; WORDS]) -> PixelSum {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every small message of the API reads back what was written and refuses a field it
+    /// does not know (a misspelt field is an error, not a silent default).
+    #[test]
+    fn wire_messages_round_trip_and_refuse_unknown_fields() {
+        fn check<T: Serialize + for<'de> Deserialize<'de> + PartialEq + std::fmt::Debug>(v: T) {
+            let mut json = serde_json::to_value(&v).unwrap();
+            assert_eq!(serde_json::from_value::<T>(json.clone()).unwrap(), v);
+            json.as_object_mut().unwrap().insert("typo".into(), 1.into());
+            let e = serde_json::from_value::<T>(json).unwrap_err().to_string();
+            assert!(e.contains("unknown field `typo`"), "{e}");
+        }
+        check(HeartbeatReply { deadline_ms: 30_000 });
+        check(FailureReport { epoch: 1 << 32, error: "out of memory".into() });
+        check(Submitted { id: "0123456789abcdef".into() });
+        check(Stored { stored: true });
+        check(Priority { priority: i32::MIN });
+        check(Ready { ready: true, jobs: 3 });
+        check(JobSettings::default());
+    }
 
     #[test]
     fn plan_covers_every_pixel_sample_once_pass_by_pass() {

@@ -2,7 +2,9 @@
 //! on disk by hash), renders the chunk on all its threads, heartbeats while it renders, and
 //! uploads the partial with retries. It waits out an unreachable coordinator, and when asked to
 //! stop it finishes the chunks in hand, uploads them and exits. `furnace render` runs this same
-//! worker against a coordinator in its own process ([`LocalLink`]).
+//! worker against a coordinator in its own process (the `furnace` package's `LocalLink`).
+//! The worker knows the coordinator only through [`Link`] and the wire types of
+//! `furnace-proto`; it does not depend on the coordinator crate.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -10,10 +12,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
-use furnace_coordinator::state::accept_partial;
-use furnace_coordinator::{CoordError, Coordinator};
 use furnace_core::{render_region, render_region_parallel, Accum, Scene, Stats};
-use furnace_proto::{encode_partial, ApiError, Bundle, ChunkSpec, Lease, LeaseRequest};
+use furnace_proto::{encode_partial, ApiError, Bundle, ChunkSpec, FailureReport, Lease, LeaseRequest};
+pub use furnace_proto::{Link, Uploaded};
 use reqwest::blocking::{Client, RequestBuilder, Response};
 use reqwest::StatusCode;
 
@@ -30,28 +31,6 @@ pub enum WorkerError {
     Client(String),
     #[error("cache folder {path}: {err}")]
     Cache { path: String, err: std::io::Error },
-}
-
-/// Where a worker gets its chunks and sends its results: a coordinator over HTTP
-/// ([`HttpLink`]) or one in the same process ([`LocalLink`]). The worker's loop is the same.
-pub trait Link: Send + Sync {
-    /// The next chunk, `None` when there is no work; `Err` when the coordinator is unreachable.
-    fn lease(&self, worker: &str) -> Result<Option<Lease>, String>;
-    /// Extends the lease; false when it is no longer this worker's.
-    fn heartbeat(&self, lease: &Lease) -> bool;
-    /// The lease's scene, loaded.
-    fn scene(&self, lease: &Lease) -> Result<Arc<Scene>, String>;
-    fn upload(&self, lease: &Lease, acc: &Accum, stats: &Stats) -> Uploaded;
-    /// Reports that the chunk could not be rendered.
-    fn fail(&self, lease: &Lease, error: &str);
-}
-
-pub enum Uploaded {
-    Accepted,
-    /// Refused for good (stale lease, duplicate, bad partial): drop it.
-    Refused(String),
-    /// Not delivered (coordinator unreachable or failing): try again.
-    Retry(String),
 }
 
 pub struct WorkerConfig {
@@ -202,48 +181,6 @@ fn error_text(r: Response) -> String {
     match r.json::<ApiError>() {
         Ok(e) => format!("{status}: {}", e.error),
         Err(_) => status.to_string(),
-    }
-}
-
-/// A coordinator in the same process: leases and partials go through the same
-/// [`Coordinator`] calls as the HTTP API's, without encoding or sockets.
-pub struct LocalLink {
-    pub coord: Arc<Mutex<Coordinator>>,
-    /// Render statistics of every accepted chunk.
-    pub stats: Mutex<Stats>,
-}
-
-impl LocalLink {
-    pub fn new(coord: Arc<Mutex<Coordinator>>) -> LocalLink {
-        LocalLink { coord, stats: Mutex::new(Stats::default()) }
-    }
-    fn lock(&self) -> std::sync::MutexGuard<'_, Coordinator> {
-        self.coord.lock().unwrap_or_else(|e| e.into_inner())
-    }
-}
-
-impl Link for LocalLink {
-    fn lease(&self, worker: &str) -> Result<Option<Lease>, String> {
-        Ok(self.lock().lease(worker, std::time::Instant::now()))
-    }
-    fn heartbeat(&self, l: &Lease) -> bool {
-        self.lock().heartbeat(&l.job, l.chunk.id, l.epoch, std::time::Instant::now()).is_ok()
-    }
-    fn scene(&self, l: &Lease) -> Result<Arc<Scene>, String> {
-        self.lock().job_scene(&l.job).ok_or_else(|| format!("job {} has no scene in this process", l.job))
-    }
-    fn upload(&self, l: &Lease, acc: &Accum, stats: &Stats) -> Uploaded {
-        match accept_partial(&self.coord, &l.job, l.chunk.id, l.epoch, acc, None) {
-            Ok(()) => {
-                self.stats.lock().unwrap_or_else(|e| e.into_inner()).merge(stats);
-                Uploaded::Accepted
-            }
-            Err(CoordError::Internal(e)) => Uploaded::Retry(e),
-            Err(e) => Uploaded::Refused(e.to_string()),
-        }
-    }
-    fn fail(&self, l: &Lease, error: &str) {
-        let _ = self.lock().fail(&l.job, l.chunk.id, l.epoch, error);
     }
 }
 
@@ -426,7 +363,7 @@ impl Link for HttpLink {
 
     fn fail(&self, l: &Lease, error: &str) {
         let url = self.url(&format!("/v1/jobs/{}/chunks/{}/fail", l.job, l.chunk.id));
-        let body = serde_json::json!({"epoch": l.epoch, "error": error});
+        let body = FailureReport { epoch: l.epoch, error: error.to_string() };
         let _ = self.auth(self.http.post(url)).json(&body).send();
     }
 }
