@@ -67,7 +67,9 @@ fn submit(server: &Server, scene_path: &Path, scene: &Scene, settings: &JobSetti
     let mut c = server.coord.lock().expect("lock");
     let (bundle, files) = Bundle::of_scene(scene_path, scene).expect("bundle");
     for (rel, path) in files {
-        std::fs::copy(path, c.file_path(&bundle.files[&rel])).expect("store file");
+        c.store()
+            .put_file(&bundle.files[&rel], &std::fs::read(path).expect("read file"))
+            .expect("store file");
     }
     c.submit(JobSpec { bundle, settings: settings.clone() }, None).expect("submit").0
 }

@@ -25,7 +25,7 @@ fn open_coordinator(data: &Path) -> Mutex<Coordinator> {
 fn submit_small(coord: &Mutex<Coordinator>, scene: &Scene, settings: JobSettings) -> String {
     let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), scene).unwrap();
     for (rel, path) in files {
-        std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[&rel])).unwrap();
+        coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
     }
     coord.lock().unwrap().submit(JobSpec { bundle, settings }, None).unwrap().0
 }
@@ -72,7 +72,7 @@ fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
         accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None).unwrap();
         if k % 3 == 0 {
             let again = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None);
-            assert!(matches!(again, Err(CoordError::Conflict(_))), "{again:?}");
+            assert!(matches!(again, Err(CoordError::Refused(_))), "{again:?}");
         }
     }
     let c = coord.lock().unwrap();
@@ -229,12 +229,12 @@ fn corrupt_stored_files_are_quarantined_and_their_chunks_render_again() {
     // Both jobs' scene files gone: the coordinator starts, without them.
     let coord = open_coordinator(&data);
     for id in [&job, &other] {
-        assert!(matches!(coord.lock().unwrap().status(id), Err(CoordError::NotFound(_))));
+        assert!(matches!(coord.lock().unwrap().status(id), Err(CoordError::Unknown(_))));
     }
     // The files come back (as a user would restore them): both jobs are back.
     let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
     for (rel, path) in files {
-        std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[&rel])).unwrap();
+        coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
     }
     drop(coord);
     let coord = open_coordinator(&data);
@@ -281,7 +281,7 @@ fn store_bundle(coord: &Mutex<Coordinator>, scene: &str, files: &[(&str, &[u8])]
     let mut bundle = Bundle { scene: scene.into(), files: Default::default() };
     for (path, bytes) in files {
         let hash = blake3::hash(bytes).to_hex().to_string();
-        std::fs::write(coord.lock().unwrap().file_path(&hash), bytes).unwrap();
+        coord.lock().unwrap().store().put_file(&hash, bytes).unwrap();
         bundle.files.insert(path.to_string(), hash);
     }
     bundle
@@ -351,7 +351,7 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
     // It names the file as the bundle does, not where this host keeps it.
     let data = dir.join("data").display().to_string();
     assert!(
-        matches!(&e, CoordError::Unprocessable(m) if m.contains("teapot") && m.contains(": a/bad.xml:") && !m.contains(&data)),
+        matches!(&e, CoordError::Unrenderable(m) if m.contains("teapot") && m.contains(": a/bad.xml:") && !m.contains(&data)),
         "{e:?}"
     );
     assert_eq!(bundles(), before, "a failed submission left files behind");
@@ -405,9 +405,9 @@ fn finished_jobs_release_their_memory_restart_without_their_scene_and_can_be_del
     assert_eq!(gone[0], data.join("jobs").join(&job));
     let (bundle, _) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
     for h in bundle.files.values() {
-        assert!(gone.contains(&c.file_path(h)), "{h} is not removed");
+        assert!(gone.contains(&data.join("files").join(h)), "{h} is not removed");
     }
-    assert!(matches!(c.status(&job), Err(CoordError::NotFound(_))));
+    assert!(matches!(c.status(&job), Err(CoordError::Unknown(_))));
     drop(c);
     drop(coord);
     std::fs::remove_dir_all(&gone[0]).unwrap();
@@ -425,7 +425,7 @@ fn concurrent_submissions_of_one_bundle_leave_its_files_intact() {
     let scene = load("small.xml", &[]);
     let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
     for (rel, path) in &files {
-        std::fs::copy(path, coord.lock().unwrap().file_path(&bundle.files[rel])).unwrap();
+        coord.lock().unwrap().store().put_file(&bundle.files[rel], &std::fs::read(path).unwrap()).unwrap();
     }
     let settings = JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() };
     let threads: Vec<_> = (0..4)
@@ -439,7 +439,7 @@ fn concurrent_submissions_of_one_bundle_leave_its_files_intact() {
         t.join().unwrap().unwrap();
     }
     for hash in bundle.files.values() {
-        let bytes = std::fs::read(coord.lock().unwrap().file_path(hash)).unwrap();
+        let bytes = coord.lock().unwrap().store().file(hash).unwrap();
         assert_eq!(blake3::hash(&bytes).to_hex().as_str(), hash, "a stored file changed");
     }
     let leftovers = std::fs::read_dir(dir.join("data/bundles"))
@@ -540,12 +540,12 @@ fn a_job_left_out_at_start_can_be_deleted() {
     std::fs::remove_dir_all(data.join("files")).unwrap();
     let coord = open_coordinator(&data);
     let mut c = coord.lock().unwrap();
-    assert!(matches!(c.status(&job), Err(CoordError::NotFound(_))));
+    assert!(matches!(c.status(&job), Err(CoordError::Unknown(_))));
     for bad in ["..", "", "a/b"] {
-        assert!(matches!(c.delete(bad), Err(CoordError::NotFound(_))), "{bad:?}");
+        assert!(matches!(c.delete(bad), Err(CoordError::Unknown(_))), "{bad:?}");
     }
     assert_eq!(c.delete(&job).unwrap()[0], data.join("jobs").join(&job));
-    assert!(matches!(c.delete(&job), Err(CoordError::NotFound(_))));
+    assert!(matches!(c.delete(&job), Err(CoordError::Unknown(_))));
     drop(c);
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -565,7 +565,7 @@ fn deleting_a_job_keeps_the_files_other_jobs_use() {
     assert_eq!(first, vec![dir.join("data/jobs").join(&a)], "b still uses the files");
     let second = c.delete(&b).unwrap();
     for h in bundle.files.values() {
-        assert!(second.contains(&c.file_path(h)));
+        assert!(second.contains(&dir.join("data/files").join(h)));
     }
     assert!(second.iter().any(|p| p.ends_with(format!("bundles/{}", bundle.hash()))));
     drop(c);

@@ -20,11 +20,15 @@ use serde::Deserialize;
 use tokio::sync::Notify;
 
 use crate::state::{CoordError, Coordinator};
+use crate::store::Store;
 
 /// Shared state of the server.
 #[derive(Clone)]
 pub struct AppState {
     pub coord: Arc<Mutex<Coordinator>>,
+    /// The coordinator's store: files and bundles are read and written through it, without the
+    /// coordinator's lock.
+    store: Arc<dyn Store>,
     /// Bearer token required on every request, when set.
     pub token: Option<String>,
     /// Wakes lease requests held open for work: signalled when work may have appeared.
@@ -51,8 +55,10 @@ impl AppState {
     /// Also installs the process's Prometheus recorder, once: metrics are recorded from here on.
     pub fn new(coord: Arc<Mutex<Coordinator>>, token: Option<String>) -> AppState {
         prometheus();
+        let store = coord.lock().unwrap_or_else(|e| e.into_inner()).store();
         AppState {
             coord,
+            store,
             token,
             work: Arc::new(Notify::new()),
             loads: Arc::new(tokio::sync::Semaphore::new(CONCURRENT_LOADS)),
@@ -80,10 +86,10 @@ fn error(status: StatusCode, msg: impl Into<String>) -> Response {
 impl IntoResponse for CoordError {
     fn into_response(self) -> Response {
         let status = match &self {
-            CoordError::BadRequest(_) => StatusCode::BAD_REQUEST,
-            CoordError::NotFound(_) => StatusCode::NOT_FOUND,
-            CoordError::Conflict(_) => StatusCode::CONFLICT,
-            CoordError::Unprocessable(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            CoordError::Invalid(_) => StatusCode::BAD_REQUEST,
+            CoordError::Unknown(_) => StatusCode::NOT_FOUND,
+            CoordError::Refused(_) => StatusCode::CONFLICT,
+            CoordError::Unrenderable(_) => StatusCode::UNPROCESSABLE_ENTITY,
             CoordError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         };
         if status.is_server_error() {
@@ -113,7 +119,7 @@ async fn json_errors(resp: Response) -> Response {
 type ApiResult = Result<Response, CoordError>;
 
 fn json_body<T: for<'de> Deserialize<'de>>(body: &Bytes, what: &str) -> Result<T, CoordError> {
-    serde_json::from_slice(body).map_err(|e| CoordError::BadRequest(format!("{what}: invalid JSON: {e}")))
+    serde_json::from_slice(body).map_err(|e| CoordError::Invalid(format!("{what}: invalid JSON: {e}")))
 }
 
 /// Largest request body: scene files and partials.
@@ -352,29 +358,22 @@ async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
 
 async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: Bytes) -> ApiResult {
     if !is_hash(&hash) {
-        return Err(CoordError::BadRequest(format!("'{hash}' is not a BLAKE3 hex hash")));
+        return Err(CoordError::Invalid(format!("'{hash}' is not a BLAKE3 hex hash")));
     }
     let actual = blake3::hash(&body).to_hex().to_string();
     if actual != hash {
-        return Err(CoordError::BadRequest(format!("body hashes to {actual}, not {hash}")));
+        return Err(CoordError::Invalid(format!("body hashes to {actual}, not {hash}")));
     }
-    let path = s.lock().file_path(&hash);
-    // A stored file is kept only while it still hashes to its name; a damaged one is replaced.
-    let stored = tokio::task::spawn_blocking(move || -> Result<bool, CoordError> {
-        if std::fs::read(&path).is_ok_and(|b| blake3::hash(&b).to_hex().as_str() == hash) {
-            return Ok(false);
-        }
-        crate::state::write_atomic(&path, &body)?;
-        Ok(true)
-    })
-    .await
-    .map_err(|e| CoordError::Internal(e.to_string()))??;
+    let store = s.store.clone();
+    let stored = tokio::task::spawn_blocking(move || store.put_file(&hash, &body))
+        .await
+        .map_err(|e| CoordError::Internal(e.to_string()))??;
     let code = if stored { StatusCode::CREATED } else { StatusCode::OK };
     Ok((code, Json(Stored { stored })).into_response())
 }
 
 async fn head_file(State(s): State<AppState>, Path(hash): Path<String>) -> StatusCode {
-    if is_hash(&hash) && s.lock().file_path(&hash).exists() {
+    if is_hash(&hash) && s.store.has_file(&hash) {
         StatusCode::OK
     } else {
         StatusCode::NOT_FOUND
@@ -383,10 +382,13 @@ async fn head_file(State(s): State<AppState>, Path(hash): Path<String>) -> Statu
 
 async fn get_file(State(s): State<AppState>, Path(hash): Path<String>) -> ApiResult {
     if !is_hash(&hash) {
-        return Err(CoordError::BadRequest(format!("'{hash}' is not a BLAKE3 hex hash")));
+        return Err(CoordError::Invalid(format!("'{hash}' is not a BLAKE3 hex hash")));
     }
-    let path = s.lock().file_path(&hash);
-    let bytes = std::fs::read(&path).map_err(|_| CoordError::NotFound(format!("no file {hash}")))?;
+    let store = s.store.clone();
+    let bytes = tokio::task::spawn_blocking(move || store.file(&hash).ok_or(hash))
+        .await
+        .map_err(|e| CoordError::Internal(e.to_string()))?
+        .map_err(|hash| CoordError::Unknown(format!("no file {hash}")))?;
     Ok(bytes.into_response())
 }
 
@@ -402,7 +404,7 @@ async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) ->
         Some(v) => {
             let k = v.to_str().ok().filter(|k| !k.is_empty() && k.len() <= MAX_IDEMPOTENCY_KEY);
             let e = || format!("an Idempotency-Key has 1 to {MAX_IDEMPOTENCY_KEY} visible ASCII characters");
-            Some(k.ok_or_else(|| CoordError::BadRequest(e()))?.to_string())
+            Some(k.ok_or_else(|| CoordError::Invalid(e()))?.to_string())
         }
     };
     let coord = s.coord.clone();
@@ -455,18 +457,7 @@ async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
 
 async fn delete_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
     let paths = s.lock().delete(&id)?;
-    tokio::task::spawn_blocking(move || {
-        for p in paths {
-            let removed = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
-            if let Err(e) = removed.map_err(|e| (e.kind(), e)) {
-                if e.0 != std::io::ErrorKind::NotFound {
-                    tracing::warn!(job = %id, "removing {}: {}", p.display(), e.1);
-                }
-            }
-        }
-    })
-    .await
-    .ok();
+    tokio::task::spawn_blocking(move || crate::store::remove_paths(&paths)).await.ok();
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
@@ -482,7 +473,9 @@ async fn preview(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult
 
 async fn result(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
     let path = s.lock().result_path(&id)?;
-    let bytes: Vec<u8> = std::fs::read(&path)?;
+    let bytes = tokio::task::spawn_blocking(move || std::fs::read(path))
+        .await
+        .map_err(|e| CoordError::Internal(e.to_string()))??;
     Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response())
 }
 
@@ -502,7 +495,7 @@ async fn priority(State(s): State<AppState>, Path(id): Path<String>, body: Bytes
 async fn lease(State(s): State<AppState>, body: Bytes) -> ApiResult {
     let req: LeaseRequest = json_body(&body, "lease request")?;
     if req.worker.is_empty() || req.worker.len() > 200 {
-        return Err(CoordError::BadRequest("worker name must be 1 to 200 bytes".into()));
+        return Err(CoordError::Invalid("worker name must be 1 to 200 bytes".into()));
     }
     // A long poll ends well inside the request time limit.
     let wait = Duration::from_millis(req.wait_ms.min(MAX_LEASE_WAIT_MS)).min(s.request_timeout / 2);
@@ -554,14 +547,14 @@ async fn upload(
         .split('&')
         .find_map(|kv| kv.strip_prefix("epoch="))
         .and_then(|v| v.parse::<u64>().ok())
-        .ok_or_else(|| CoordError::BadRequest("the upload needs ?epoch= of its lease".into()))?;
+        .ok_or_else(|| CoordError::Invalid("the upload needs ?epoch= of its lease".into()))?;
     let coord = s.coord.clone();
     let t = Instant::now();
     metrics::counter!("furnace_upload_bytes_total").increment(body.len() as u64);
     tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
         // The lease first; then decode, outside the lock: it is the slow part.
         let max = crate::state::check_upload(&coord, &id, chunk, epoch)?;
-        let acc = decode_partial(&body, max).map_err(|e| CoordError::BadRequest(e.to_string()))?;
+        let acc = decode_partial(&body, max).map_err(|e| CoordError::Invalid(e.to_string()))?;
         crate::state::accept_partial(&coord, &id, chunk, epoch, &acc, Some(&body))
     })
     .await

@@ -1,16 +1,16 @@
-//! The coordinator's state: jobs, their chunks and leases, the exact merge, and persistence.
+//! The coordinator: its jobs (each a [`Job`] core), the scheduler that hands out their chunks,
+//! the registry of workers, and the functions that take slow work (loading scenes, decoding,
+//! storing) out of its lock.
 //!
-//! Durability: an accepted partial is written to `jobs/{id}/partials/{chunk}.zst` (temporary
-//! file, fsync, rename) before the upload is acknowledged; the merged image lives in memory and
-//! in a checkpoint (`jobs/{id}/checkpoint`: the merged accumulation plus the set of chunks in
-//! it), written atomically every `CHECKPOINT_EVERY` merges and at the end, after which the
-//! partials it contains are deleted. After a crash, a job's image is its checkpoint plus every
-//! partial not in it: nothing acknowledged is lost and nothing is merged twice. Jobs themselves
-//! (spec, state, priority, idempotency key) are rows in SQLite (WAL). Leases live in memory:
-//! after a restart every unfinished chunk is pending again, under epochs above all earlier ones.
+//! Durability, with a durable [`Store`]: an accepted partial is stored (temporary file, fsync,
+//! rename) before the upload is acknowledged; the merged image lives in memory and in a
+//! checkpoint (the merged accumulation plus the set of chunks in it), written every 256 merges
+//! (and `checkpoint_interval`) and at the end, after which the partials it holds are dropped.
+//! After a crash, a job's image is its checkpoint plus every partial not in it: nothing
+//! acknowledged is lost and nothing is merged twice. Leases live in memory: after a restart
+//! every unfinished chunk is pending again, under epochs above all earlier ones.
 
-use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
-use std::io::Write;
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -21,28 +21,10 @@ use furnace_proto::{
     Lease,
 };
 
-/// Merges between checkpoints (at least; see `Coordinator::checkpoint_interval`).
-const CHECKPOINT_EVERY: usize = 256;
-/// The database: jobs (spec, state, idempotency key) and the boot counter.
-const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS jobs (
-        id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
-        idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);
-    CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);";
-/// Brings a database made by an earlier version up to date.
-fn migrate(db: &rusqlite::Connection) -> Result<(), CoordError> {
-    let has = |col: &str| -> Result<bool, CoordError> {
-        let n: i64 =
-            db.query_row("SELECT COUNT(*) FROM pragma_table_info('jobs') WHERE name = ?1", [col], |r| {
-                r.get(0)
-            })?;
-        Ok(n > 0)
-    };
-    if !has("request_hash")? {
-        // The hash of the spec an idempotency key was first used with.
-        db.execute_batch("ALTER TABLE jobs ADD COLUMN request_hash TEXT")?;
-    }
-    Ok(())
-}
+pub use crate::error::CoordError;
+use crate::job::{ChunkState, Job, Snapshot};
+pub use crate::job::{MAX_ERRORS, MAX_ERROR_BYTES};
+use crate::store::{DiskStore, JobRow, MemStore, Store};
 
 /// The hash of a submitted spec, as submitted (before the scene fills in its defaults).
 fn request_hash(spec: &JobSpec) -> String {
@@ -51,369 +33,8 @@ fn request_hash(spec: &JobSpec) -> String {
 
 /// Failures of one worker on one job after which it gets no more of that job's chunks.
 pub const MAX_FAILURES_PER_WORKER: u32 = 3;
-/// Errors a job keeps for its status (the most recent), and the longest kept, in bytes.
-pub const MAX_ERRORS: usize = 100;
-pub const MAX_ERROR_BYTES: usize = 2048;
 /// Workers a job's status lists (the most recent).
 pub const MAX_JOB_WORKERS: usize = 1000;
-
-#[derive(Debug, thiserror::Error)]
-pub enum CoordError {
-    #[error("{0}")]
-    BadRequest(String),
-    #[error("{0}")]
-    NotFound(String),
-    #[error("{0}")]
-    Conflict(String),
-    #[error("{0}")]
-    Unprocessable(String),
-    #[error("internal error: {0}")]
-    Internal(String),
-}
-
-impl From<std::io::Error> for CoordError {
-    fn from(e: std::io::Error) -> Self {
-        CoordError::Internal(e.to_string())
-    }
-}
-impl From<rusqlite::Error> for CoordError {
-    fn from(e: rusqlite::Error) -> Self {
-        CoordError::Internal(format!("database: {e}"))
-    }
-}
-
-#[derive(Clone, Debug)]
-enum ChunkState {
-    Pending,
-    Leased {
-        epoch: u64,
-        worker: String,
-        deadline: Instant,
-        /// When it was handed out, for the chunk duration metric.
-        since: Instant,
-    },
-    Done,
-    /// Not rendered: its tile reached the job's target error first.
-    Skipped,
-}
-
-struct Job {
-    id: String,
-    spec: JobSpec,
-    /// `spec.bundle.hash()`, computed once: every lease carries it.
-    bundle_hash: String,
-    state: JobState,
-    plan: Vec<ChunkSpec>,
-    chunks: Vec<ChunkState>,
-    /// Pending chunks in hand-out order: requeued ones go to the front.
-    queue: VecDeque<u32>,
-    accum: Accum,
-    /// Chunks whose partial is in `accum`.
-    merged: HashSet<u32>,
-    /// Chunks not to render: their tile reached the target error (noise-target jobs).
-    skipped: HashSet<u32>,
-    /// Each tile's latest error estimate (noise-target jobs; NaN until known).
-    tile_est: Vec<f64>,
-    /// The whole image's estimated relative MSE and the samples it was computed at: a pass over
-    /// the full accumulation, so status polls reuse it for a second unless the job is complete.
-    est_cache: std::cell::Cell<Option<(Instant, u64, f64)>>,
-    /// Chunks in the last checkpoint.
-    checkpointed: HashSet<u32>,
-    since_checkpoint: usize,
-    /// A checkpoint is being written (outside the lock).
-    checkpointing: bool,
-    /// When the last checkpoint failed (a full disk), for [`retry_checkpoints`].
-    checkpoint_failed: Option<Instant>,
-    last_checkpoint: Instant,
-    /// Filter margin of the scene, for checking partial sizes.
-    margin: u32,
-    render_plan: String,
-    failures: HashMap<String, u32>,
-    errors: Vec<String>,
-    /// The loaded scene, kept for workers in this process (`furnace render`, `--local-workers`).
-    scene: Option<Arc<Scene>>,
-    workers: BTreeMap<String, Instant>,
-    /// (time, samples) of recent merges, for the rate.
-    recent: VecDeque<(Instant, u64)>,
-    samples_done: u64,
-    created: u64,
-    /// A finished job keeps only its final status (and its result on disk): the plan, the
-    /// chunk states, the accumulation and the scene are released.
-    final_status: Option<Box<JobStatus>>,
-}
-
-impl Job {
-    fn dir(&self, data: &Path) -> PathBuf {
-        data.join("jobs").join(&self.id)
-    }
-
-    /// A chunk's partial rectangle (x0, y0, width, height): its tile grown by the filter's
-    /// margin, clipped to the image.
-    fn window(&self, chunk: u32) -> (u32, u32, u32, u32) {
-        let s = &self.spec.settings;
-        let r = &self.plan[chunk as usize].region;
-        let m = self.margin;
-        let x0 = r.x0.saturating_sub(m);
-        let y0 = r.y0.saturating_sub(m);
-        (x0, y0, (r.x1 + m).min(s.width) - x0, (r.y1 + m).min(s.height) - y0)
-    }
-
-    /// Checks that `acc` is a partial of `chunk`: its rectangle (the chunk's tile grown by the
-    /// filter margin) and its sample count.
-    fn fits(&self, chunk: u32, acc: &Accum) -> Result<(), String> {
-        let r = &self.plan[chunk as usize].region;
-        let want = self.window(chunk);
-        let got = (acc.x0, acc.y0, acc.width, acc.height);
-        if got != want {
-            return Err(format!(
-                "partial covers {}x{} at ({}, {}); chunk {chunk} needs {}x{} at ({}, {})",
-                got.2, got.3, got.0, got.1, want.2, want.3, want.0, want.1
-            ));
-        }
-        let expected = r.samples();
-        if acc.sample_count() != expected {
-            return Err(format!(
-                "partial holds {} samples; chunk {chunk} has {expected}",
-                acc.sample_count()
-            ));
-        }
-        // Filters weigh samples by non-negative weights and radiance is non-negative: no sum
-        // can be negative, and no pixel gets more than the chunk's samples per pixel.
-        let spp = r.s1 - r.s0;
-        let bad = acc
-            .pixels
-            .iter()
-            .position(|p| p.weight < 0 || p.lum2 < 0 || p.rgb.iter().any(|&c| c < 0) || p.count > spp);
-        if let Some(i) = bad {
-            let (x, y) = (acc.x0 + i as u32 % acc.width, acc.y0 + i as u32 / acc.width);
-            return Err(format!("partial pixel ({x}, {y}) holds a negative sum or more than {spp} samples"));
-        }
-        Ok(())
-    }
-
-    /// A finished job as a restart restores it: its final status, nothing else.
-    fn finished(id: String, spec: JobSpec, created: u64, status: JobStatus) -> Job {
-        let mut job = Job::new(id, spec, JobState::Done, created, Vec::new(), Accum::new(0, 0, 0, 0));
-        job.render_plan = status.plan.clone();
-        job.errors = status.errors.clone();
-        job.samples_done = status.samples_done;
-        job.accum.dropped = status.dropped_samples;
-        job.release(status);
-        job
-    }
-
-    /// A job with its plan and accumulation, every chunk pending, nothing queued yet.
-    fn new(
-        id: String,
-        spec: JobSpec,
-        state: JobState,
-        created: u64,
-        plan: Vec<ChunkSpec>,
-        accum: Accum,
-    ) -> Job {
-        Job {
-            bundle_hash: spec.bundle.hash(),
-            id,
-            spec,
-            state,
-            chunks: vec![ChunkState::Pending; plan.len()],
-            plan,
-            queue: VecDeque::new(),
-            accum,
-            merged: HashSet::new(),
-            skipped: HashSet::new(),
-            tile_est: Vec::new(),
-            est_cache: std::cell::Cell::new(None),
-            checkpointed: HashSet::new(),
-            since_checkpoint: 0,
-            checkpointing: false,
-            checkpoint_failed: None,
-            last_checkpoint: Instant::now(),
-            margin: 0,
-            render_plan: String::new(),
-            failures: HashMap::new(),
-            errors: Vec::new(),
-            scene: None,
-            workers: BTreeMap::new(),
-            recent: VecDeque::new(),
-            samples_done: 0,
-            created,
-            final_status: None,
-        }
-    }
-
-    /// Keeps `status` as the job's final status and lets go of everything else.
-    fn release(&mut self, status: JobStatus) {
-        let dropped = self.accum.dropped;
-        self.accum = Accum::new(0, 0, 0, 0);
-        self.accum.dropped = dropped;
-        self.plan = Vec::new();
-        self.chunks = Vec::new();
-        self.queue = VecDeque::new();
-        self.merged = HashSet::new();
-        self.skipped = HashSet::new();
-        self.checkpointed = HashSet::new();
-        self.tile_est = Vec::new();
-        self.recent = VecDeque::new();
-        self.failures = HashMap::new();
-        self.workers = BTreeMap::new(); // the final status lists them
-        self.scene = None;
-        self.final_status = Some(Box::new(status));
-    }
-
-    /// Records an error for the job's status: at most [`MAX_ERROR_BYTES`] of it, and only the
-    /// [`MAX_ERRORS`] most recent.
-    fn record_error(&mut self, mut e: String) {
-        if e.len() > MAX_ERROR_BYTES {
-            let mut end = MAX_ERROR_BYTES;
-            while !e.is_char_boundary(end) {
-                end -= 1;
-            }
-            e.truncate(end);
-            e.push_str(" [cut]");
-        }
-        if self.errors.len() == MAX_ERRORS {
-            self.errors.remove(0);
-        }
-        self.errors.push(e);
-    }
-
-    /// Moves a stored file that cannot be used aside (into the job's `quarantine/`), logs it
-    /// and records it in the job's errors: the chunks it held are rendered again.
-    fn quarantine(&mut self, data: &Path, file: &Path, why: &str) {
-        let dir = self.dir(data).join("quarantine");
-        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let moved = std::fs::create_dir_all(&dir).and_then(|_| std::fs::rename(file, dir.join(&name)));
-        let e = format!("stored {name} was unusable ({why}); moved to quarantine/, its chunks render again");
-        tracing::error!(job = %self.id, "{e}");
-        if let Err(m) = moved {
-            tracing::error!(job = %self.id, "cannot move {} aside: {m}", file.display());
-            std::fs::remove_file(file).ok();
-        }
-        self.record_error(e);
-    }
-
-    fn samples_total(&self) -> u64 {
-        let s = &self.spec.settings;
-        s.width as u64 * s.height as u64 * s.spp
-    }
-
-    /// A copy of the merge for a checkpoint, when one is due (after `CHECKPOINT_EVERY` merges
-    /// and `interval`, and when the job is complete) and none is being written.
-    fn snapshot(&mut self, data: &Path, interval: Duration) -> Option<Snapshot> {
-        let finished = self.complete();
-        let due = self.since_checkpoint >= CHECKPOINT_EVERY && self.last_checkpoint.elapsed() >= interval;
-        if self.checkpointing || !(finished || due) {
-            return None;
-        }
-        self.checkpointing = true;
-        self.since_checkpoint = 0;
-        self.last_checkpoint = Instant::now();
-        let mut ids: Vec<u32> = self.merged.iter().copied().collect();
-        ids.sort();
-        let new = ids.iter().copied().filter(|id| !self.checkpointed.contains(id)).collect();
-        let mut skipped: Vec<u32> = self.skipped.iter().copied().collect();
-        skipped.sort();
-        Some(Snapshot {
-            job: self.id.clone(),
-            dir: self.dir(data),
-            ids,
-            skipped,
-            new,
-            accum: self.accum.clone(),
-            finished,
-        })
-    }
-
-    /// Every chunk merged or skipped.
-    fn complete(&self) -> bool {
-        self.merged.len() + self.skipped.len() == self.plan.len()
-    }
-
-    /// After chunk `chunk` of a noise-target job is merged: estimate its tile's error from the
-    /// chunk's own samples (its pass alone, so the decision depends only on deterministic
-    /// partials, never on arrival order), then queue the tile's next pass or skip the rest.
-    /// The pass's estimated relative MSE falls as 1/passes: after pass p it is est / (p + 1).
-    fn follow_up(&mut self, chunk: u32, acc: &Accum) {
-        let Some(target) = self.spec.settings.target_rel_error else { return };
-        let n = self.spec.settings.tiles();
-        let (tile, pass) = (chunk % n, chunk / n);
-        let r = self.plan[chunk as usize].region;
-        let mut own = Accum::new(r.x0, r.y0, r.x1 - r.x0, r.y1 - r.y0);
-        own.merge(acc);
-        let est = own.estimated_rel_mse() / (pass + 1) as f64;
-        self.tile_est[tile as usize] = est;
-        let next = chunk + n;
-        if next as usize >= self.plan.len() {
-            return;
-        }
-        if est <= target * target {
-            for c in (next..self.plan.len() as u32).step_by(n as usize) {
-                self.skipped.insert(c);
-                self.chunks[c as usize] = ChunkState::Skipped;
-            }
-        } else {
-            self.queue.push_back(next);
-        }
-    }
-
-    /// The samples still to render: for noise-target jobs, each unfinished tile's passes
-    /// predicted from its latest estimate (all its remaining passes while it has none).
-    fn samples_left(&self) -> u64 {
-        let s = &self.spec.settings;
-        let Some(target) = s.target_rel_error else { return self.samples_total() - self.samples_done };
-        let n = s.tiles();
-        let passes = (self.plan.len() as u32).div_ceil(n);
-        let mut left = 0;
-        for tile in 0..n {
-            let todo: Vec<u32> = (tile..self.plan.len() as u32)
-                .step_by(n as usize)
-                .filter(|c| !self.merged.contains(c) && !self.skipped.contains(c))
-                .collect();
-            let Some(&first) = todo.first() else { continue };
-            let done = first / n;
-            let est = self.tile_est[tile as usize];
-            let need = if est.is_finite() {
-                ((est * done as f64 / (target * target)).ceil() as u32).clamp(done + 1, passes)
-            } else {
-                passes
-            };
-            left += todo
-                .iter()
-                .take((need - done) as usize)
-                .map(|&c| self.plan[c as usize].region.samples())
-                .sum::<u64>();
-        }
-        left
-    }
-
-    /// The merge's estimated relative MSE, recomputed at most once a second while the job
-    /// runs (always exact once it is complete).
-    fn estimated_rel_mse(&self) -> f64 {
-        if let Some((at, samples, e)) = self.est_cache.get() {
-            let fresh =
-                samples == self.samples_done || (at.elapsed() < Duration::from_secs(1) && !self.complete());
-            if fresh {
-                return e;
-            }
-        }
-        let e = self.accum.estimated_rel_mse();
-        self.est_cache.set(Some((Instant::now(), self.samples_done, e)));
-        e
-    }
-
-    fn counts(&self) -> (u64, u64, u64) {
-        let (mut done, mut leased, mut pending) = (0, 0, 0);
-        for c in &self.chunks {
-            match c {
-                ChunkState::Done | ChunkState::Skipped => done += 1,
-                ChunkState::Leased { .. } => leased += 1,
-                ChunkState::Pending => pending += 1,
-            }
-        }
-        (done, leased, pending)
-    }
-}
 
 /// What the coordinator remembers of a worker: it exists only in the requests it makes.
 struct WorkerSeen {
@@ -429,10 +50,7 @@ const WORKER_SLACK: Duration = Duration::from_secs(5);
 const FORGET_WORKER: Duration = Duration::from_secs(3600);
 
 pub struct Coordinator {
-    data: PathBuf,
-    /// Whether jobs, partials and results are stored in `data` (false: in memory only).
-    persist: bool,
-    db: rusqlite::Connection,
+    store: Arc<dyn Store>,
     jobs: BTreeMap<String, Job>,
     next_epoch: u64,
     pub lease_duration: Duration,
@@ -451,29 +69,6 @@ pub struct Coordinator {
 
 fn now_secs() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0)
-}
-
-/// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the folder.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir)?;
-    // Unique, so that concurrent writes of one path never share a temporary file.
-    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let tmp = dir.join(format!(".{name}.{}.{n}.tmp", std::process::id()));
-    let written = std::fs::File::create(&tmp)
-        .and_then(|mut f| f.write_all(bytes).and_then(|_| f.sync_all()))
-        .and_then(|_| std::fs::rename(&tmp, path));
-    if let Err(e) = written {
-        // A full disk or the like: no temporary file is left behind.
-        std::fs::remove_file(&tmp).ok();
-        return Err(e);
-    }
-    if let Ok(d) = std::fs::File::open(dir) {
-        d.sync_all().ok();
-    }
-    Ok(())
 }
 
 /// A job's image: developed from its accumulation in memory, or a finished job's result file.
@@ -496,7 +91,7 @@ impl Picture {
 /// What loading a job's scene needs of the coordinator, taken out of it so that scenes are
 /// loaded, validated and planned without its lock.
 struct Loader {
-    data: PathBuf,
+    store: Arc<dyn Store>,
     keep_scenes: bool,
 }
 
@@ -512,82 +107,23 @@ impl Loader {
         self.new_job(id, spec, JobState::Queued, created)
     }
 
-    fn file_path(&self, hash: &str) -> PathBuf {
-        self.data.join("files").join(hash)
-    }
-
-    fn bundle_dir(&self, bundle_hash: &str) -> PathBuf {
-        self.data.join("bundles").join(bundle_hash)
-    }
-
-    /// Lays the bundle's files out under `bundles/{hash}/` (once) and loads its scene.
-    fn load_bundle(&self, spec: &JobSpec) -> Result<(PathBuf, Scene), CoordError> {
-        let b = &spec.bundle;
-        b.validate().map_err(CoordError::BadRequest)?;
-        let missing: Vec<&str> =
-            b.files.iter().filter(|(_, h)| !self.file_path(h).exists()).map(|(p, _)| p.as_str()).collect();
-        if !missing.is_empty() {
-            return Err(CoordError::BadRequest(format!(
-                "bundle files not uploaded yet: {} (PUT /v1/files/{{hash}} first)",
-                missing.join(", ")
-            )));
-        }
-        let hash = b.hash();
-        let dir = self.bundle_dir(&hash);
-        let manifest = self.data.join("bundles").join(format!("{hash}.json"));
-        let scene = if dir.is_dir() {
-            // Laid out by an earlier submission.
-            self.load_scene(&dir, b)?
-        } else {
-            // Laid out in a folder of this submission's own, loaded from there, then moved into
-            // place: concurrent submissions of one bundle never share a half-made folder, and
-            // one that fails leaves nothing behind.
-            static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-            let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            let tmp = self.data.join("bundles").join(format!(".{hash}.{}.{n}.tmp", std::process::id()));
-            let loaded = self.lay_out(b, &tmp).and_then(|_| self.load_scene(&tmp, b));
-            // Another submission may have put the same bundle in place meanwhile: keep that.
-            if loaded.is_err() || std::fs::rename(&tmp, &dir).is_err() {
-                std::fs::remove_dir_all(&tmp).ok();
-            }
-            loaded?
-        };
-        if !manifest.exists() {
-            write_atomic(&manifest, &serde_json::to_vec(b).unwrap_or_default())?;
-        }
-        Ok((dir, scene))
-    }
-
-    /// Loads the bundle's scene from where it is laid out; errors name files by their bundle
-    /// paths, the client's own, not by this host's.
-    fn load_scene(&self, dir: &Path, b: &Bundle) -> Result<Scene, CoordError> {
-        Scene::load(&dir.join(&b.scene), &[]).map_err(|e| {
-            let inside = format!("{}/", dir.display());
-            CoordError::Unprocessable(format!(
-                "the scene cannot be rendered: {}",
-                e.to_string().replace(&inside, "")
-            ))
+    /// Loads the bundle's scene from where the store lays it out; errors name files by their
+    /// bundle paths, the client's own, not by this host's.
+    fn load_bundle(&self, b: &Bundle) -> Result<Scene, CoordError> {
+        b.validate().map_err(CoordError::Invalid)?;
+        self.store.load_bundle(b, &|dir: &Path| {
+            Scene::load(&dir.join(&b.scene), &[]).map_err(|e| {
+                let inside = format!("{}/", dir.display());
+                CoordError::Unrenderable(format!(
+                    "the scene cannot be rendered: {}",
+                    e.to_string().replace(&inside, "")
+                ))
+            })
         })
     }
 
-    /// The bundle's files under their paths in a new folder `dir`: hard links to the stored
-    /// files (copies where links cannot be made).
-    fn lay_out(&self, b: &Bundle, dir: &Path) -> Result<(), CoordError> {
-        for (path, h) in &b.files {
-            let dst = dir.join(path);
-            let made = dst.parent().map_or(Ok(()), std::fs::create_dir_all).and_then(|_| {
-                std::fs::hard_link(self.file_path(h), &dst)
-                    .or_else(|_| std::fs::copy(self.file_path(h), &dst).map(|_| ()))
-            });
-            made.map_err(|e| {
-                CoordError::BadRequest(format!("bundle path '{path}' cannot be laid out: {e}"))
-            })?;
-        }
-        Ok(())
-    }
-
     fn new_job(&self, id: String, spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
-        let (_, scene) = self.load_bundle(&spec)?;
+        let scene = self.load_bundle(&spec.bundle)?;
         self.job_from_scene(id, spec, state, created, Arc::new(scene))
     }
 
@@ -605,7 +141,7 @@ impl Loader {
             (s.width, s.height) = (w, h);
         }
         if (s.width, s.height) != (w, h) {
-            return Err(CoordError::Unprocessable(format!(
+            return Err(CoordError::Unrenderable(format!(
                 "job size {}x{} differs from the scene's film {w}x{h}",
                 s.width, s.height
             )));
@@ -613,13 +149,13 @@ impl Loader {
         if s.spp == 0 {
             s.spp = scene.spp as u64;
         }
-        s.check_limits().map_err(CoordError::Unprocessable)?;
+        s.check_limits().map_err(CoordError::Unrenderable)?;
         if let Some(t) = s.target_rel_error {
             if !(t.is_finite() && t > 0.0) {
-                return Err(CoordError::BadRequest(format!("target_rel_error must be positive, got {t}")));
+                return Err(CoordError::Invalid(format!("target_rel_error must be positive, got {t}")));
             }
             if s.spp_per_chunk < 2 {
-                return Err(CoordError::BadRequest(
+                return Err(CoordError::Invalid(
                     "a noise-target job needs spp_per_chunk >= 2 (error is estimated from each chunk's samples)"
                         .into(),
                 ));
@@ -643,30 +179,26 @@ impl Loader {
 impl Coordinator {
     /// Opens (or creates) the data directory and resumes every unfinished job.
     pub fn open(data: &Path) -> Result<Coordinator, CoordError> {
-        std::fs::create_dir_all(data.join("files"))?;
-        std::fs::create_dir_all(data.join("jobs"))?;
-        std::fs::create_dir_all(data.join("bundles"))?;
-        // Bundle folders of submissions a crash interrupted.
-        for e in std::fs::read_dir(data.join("bundles"))?.flatten() {
-            if e.file_name().to_string_lossy().ends_with(".tmp") {
-                std::fs::remove_dir_all(e.path()).ok();
-            }
-        }
-        let db = rusqlite::Connection::open(data.join("furnace.db"))?;
-        db.pragma_update(None, "journal_mode", "WAL")?;
-        db.pragma_update(None, "synchronous", "FULL")?;
-        db.execute_batch(SCHEMA)?;
-        migrate(&db)?;
+        Coordinator::with_store(Arc::new(DiskStore::open(data)?))
+    }
+
+    /// A coordinator that stores nothing: the one `furnace render` runs in its own process.
+    /// Jobs are submitted with [`Coordinator::submit_scene`]; everything lives in memory.
+    pub fn ephemeral() -> Result<Coordinator, CoordError> {
+        let mut c = Coordinator::with_store(Arc::new(MemStore::new()))?;
+        c.keep_scenes = true;
+        Ok(c)
+    }
+
+    /// A coordinator over `store`, with every job the store holds restored: finished ones as
+    /// their final status, the others from their checkpoint and stored partials.
+    pub fn with_store(store: Arc<dyn Store>) -> Result<Coordinator, CoordError> {
         // Epochs after a restart start above every epoch handed out before.
-        let boot: i64 =
-            db.query_row("SELECT value FROM meta WHERE key = 'boot'", [], |r| r.get(0)).unwrap_or(0) + 1;
-        db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('boot', ?1)", [boot])?;
+        let boot = store.boot()?;
         let mut c = Coordinator {
-            data: data.to_path_buf(),
-            persist: true,
-            db,
+            store,
             jobs: BTreeMap::new(),
-            next_epoch: (boot as u64) << 32,
+            next_epoch: boot << 32,
             lease_duration: Duration::from_secs(30),
             max_partial: 256 << 20,
             keep_scenes: false,
@@ -674,49 +206,38 @@ impl Coordinator {
             checkpoint_interval: Duration::from_secs(10),
             workers: BTreeMap::new(),
         };
-        let rows: Vec<(String, String, String, i64)> = {
-            let mut st = c.db.prepare("SELECT id, spec, state, created FROM jobs ORDER BY created, id")?;
-            let rows = st.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)))?;
-            rows.collect::<Result<_, _>>()?
-        };
-        for (id, spec, state, created) in rows {
+        for row in c.store.jobs()? {
             // One job that cannot be restored is logged and left out; the others go on.
-            let restored = serde_json::from_str::<JobSpec>(&spec)
-                .map_err(|e| CoordError::Internal(format!("stored spec unreadable: {e}")))
-                .and_then(|spec| {
-                    let state: JobState = serde_json::from_value(serde_json::Value::String(state))
-                        .map_err(|e| CoordError::Internal(format!("stored state unreadable: {e}")))?;
-                    // A finished job with its final status on disk comes back without its scene.
-                    let dir = c.data.join("jobs").join(&id);
-                    let status = std::fs::read(dir.join("status.json")).ok();
-                    let status = status.and_then(|b| serde_json::from_slice::<JobStatus>(&b).ok());
-                    match status {
-                        Some(st) if state == JobState::Done && dir.join("result.exr").exists() => {
-                            Ok((Job::finished(id.clone(), spec, created as u64, st), state))
-                        }
-                        _ => Ok((c.restore_job(id.clone(), spec, state, created as u64)?, state)),
-                    }
-                });
+            let restored = row.map_err(|(id, e)| (id, CoordError::Internal(e))).and_then(|row| {
+                let (id, state) = (row.id.clone(), row.state);
+                // A finished job with its final status stored comes back without its scene.
+                let job = match c.store.final_status(&id).filter(|_| state == JobState::Done) {
+                    Some(st) => Ok(Job::finished(row.id, row.spec, row.created, st)),
+                    None => c.restore_job(row),
+                };
+                job.map(|j| (j, state)).map_err(|e| (id, e))
+            });
             let (mut job, state) = match restored {
                 Ok(r) => r,
-                Err(e) => {
+                Err((id, e)) => {
                     tracing::error!(job = %id, "cannot restore this job, left out until the next start: {e}");
                     continue;
                 }
             };
+            let id = job.id.clone();
             // Every chunk merged but the end not recorded (a crash or failure while writing
             // the final checkpoint): finish it now.
             let open = !matches!(state, JobState::Done | JobState::Cancelled);
-            let snap = if open { job.snapshot(&c.data, c.checkpoint_interval) } else { None };
+            let snap = if open { job.snapshot(c.checkpoint_interval) } else { None };
             let release = state == JobState::Done && job.final_status.is_none();
             c.jobs.insert(id.clone(), job);
             if release {
-                if let Err(e) = c.evict(&id) {
+                if let Err(e) = c.evict(&id, true) {
                     tracing::error!(job = %id, "cannot release the finished job: {e}");
                 }
             }
             if let Some(s) = snap {
-                let result = s.write();
+                let result = s.write(&*c.store);
                 c.checkpoint_written(&s, &result);
                 if let Err(e) = result {
                     // The job stays open; its next merge or the next start writes it again.
@@ -727,42 +248,13 @@ impl Coordinator {
         Ok(c)
     }
 
-    /// A coordinator that stores nothing: the one `furnace render` runs in its own process.
-    /// Jobs are submitted with [`Coordinator::submit_scene`]; everything lives in memory.
-    pub fn ephemeral() -> Result<Coordinator, CoordError> {
-        let db = rusqlite::Connection::open_in_memory()?;
-        db.execute_batch(SCHEMA)?;
-        migrate(&db)?;
-        Ok(Coordinator {
-            data: PathBuf::new(),
-            persist: false,
-            db,
-            jobs: BTreeMap::new(),
-            next_epoch: 1 << 32,
-            lease_duration: Duration::from_secs(30),
-            max_partial: 256 << 20,
-            keep_scenes: true,
-            checkpoint_retry: Duration::from_secs(5),
-            checkpoint_interval: Duration::from_secs(10),
-            workers: BTreeMap::new(),
-        })
-    }
-
-    pub fn data_dir(&self) -> &Path {
-        &self.data
-    }
-
-    /// Path of a stored file by hash.
-    pub fn file_path(&self, hash: &str) -> PathBuf {
-        self.loader().file_path(hash)
-    }
-
-    fn bundle_dir(&self, hash: &str) -> PathBuf {
-        self.loader().bundle_dir(hash)
+    /// Where this coordinator stores jobs and files.
+    pub fn store(&self) -> Arc<dyn Store> {
+        self.store.clone()
     }
 
     fn loader(&self) -> Loader {
-        Loader { data: self.data.clone(), keep_scenes: self.keep_scenes }
+        Loader { store: self.store.clone(), keep_scenes: self.keep_scenes }
     }
 
     /// The job an idempotency key already names.
@@ -770,40 +262,20 @@ impl Coordinator {
     /// refused.
     fn idempotent(&self, key: Option<&str>, request: &str) -> Result<Option<String>, CoordError> {
         let Some(k) = key else { return Ok(None) };
-        let found: Option<(String, Option<String>)> = self
-            .db
-            .query_row("SELECT id, request_hash FROM jobs WHERE idempotency_key = ?1", [k], |r| {
-                Ok((r.get(0)?, r.get(1)?))
-            })
-            .ok();
-        match found {
+        match self.store.keyed(k)? {
             Some((_, Some(h))) if h != request => {
-                Err(CoordError::Conflict(format!("Idempotency-Key '{k}' was used for another job spec")))
+                Err(CoordError::Refused(format!("Idempotency-Key '{k}' was used for another job spec")))
             }
             other => Ok(other.map(|(id, _)| id)),
         }
     }
 
-    /// Rebuilds a job after a restart: checkpoint plus every partial not in it.
-    fn restore_job(
-        &self,
-        id: String,
-        spec: JobSpec,
-        state: JobState,
-        created: u64,
-    ) -> Result<Job, CoordError> {
-        let mut job = self.loader().new_job(id, spec, state, created)?;
-        let dir = job.dir(&self.data);
-        // Temporary files of writes a crash interrupted.
-        for d in [dir.clone(), dir.join("partials")] {
-            for e in std::fs::read_dir(d).into_iter().flatten().flatten() {
-                if e.file_name().to_string_lossy().ends_with(".tmp") {
-                    std::fs::remove_file(e.path()).ok();
-                }
-            }
-        }
-        let checkpoint = dir.join("checkpoint");
-        if let Ok(bytes) = std::fs::read(&checkpoint) {
+    /// Rebuilds a job after a restart: checkpoint plus every stored partial not in it; a
+    /// stored file that cannot be used is set aside and its chunks render again.
+    fn restore_job(&self, row: JobRow) -> Result<Job, CoordError> {
+        let mut job = self.loader().new_job(row.id, row.spec, row.state, row.created)?;
+        let id = job.id.clone();
+        if let Some(bytes) = self.store.checkpoint(&id) {
             let n = job.plan.len();
             let limit = furnace_proto::partial_size_limit(job.accum.width, job.accum.height);
             let checked = decode_checkpoint(&bytes, limit).and_then(|(ids, skipped, acc)| {
@@ -830,46 +302,40 @@ impl Coordinator {
                     job.skipped = skipped.into_iter().collect();
                     job.checkpointed = job.merged.clone();
                 }
-                Err(e) => job.quarantine(&self.data, &checkpoint, &e),
+                Err(e) => {
+                    let name = self.store.quarantine(&id, None);
+                    job.quarantined(&name, &e);
+                }
             }
         }
-        if let Ok(entries) = std::fs::read_dir(dir.join("partials")) {
-            let mut files: Vec<(u32, PathBuf)> = entries
-                .flatten()
-                .filter_map(|e| {
-                    let name = e.file_name().into_string().ok()?;
-                    let id = name.strip_suffix(".zst")?.parse().ok()?;
-                    Some((id, e.path()))
-                })
-                .collect();
-            files.sort();
-            for (id, path) in files {
-                if job.merged.contains(&id) || id as usize >= job.plan.len() {
-                    std::fs::remove_file(&path).ok();
+        for chunk in self.store.partials(&id) {
+            if job.merged.contains(&chunk) || chunk as usize >= job.plan.len() {
+                self.store.drop_partial(&id, chunk);
+                continue;
+            }
+            let acc = match self
+                .store
+                .partial(&id, chunk)
+                .and_then(|bytes| decode_partial(&bytes, self.max_partial).map_err(|e| e.to_string()))
+                .and_then(|acc| job.fits(chunk, &acc).map(|_| acc))
+            {
+                Ok(acc) => acc,
+                Err(e) => {
+                    let name = self.store.quarantine(&id, Some(chunk));
+                    job.quarantined(&name, &e);
                     continue;
                 }
-                let acc = match std::fs::read(&path)
-                    .map_err(|e| e.to_string())
-                    .and_then(|bytes| decode_partial(&bytes, self.max_partial).map_err(|e| e.to_string()))
-                    .and_then(|acc| job.fits(id, &acc).map(|_| acc))
-                {
-                    Ok(acc) => acc,
-                    Err(e) => {
-                        job.quarantine(&self.data, &path, &e);
-                        continue;
-                    }
-                };
-                job.accum.merge(&acc);
-                job.merged.insert(id);
-                job.follow_up(id, &acc);
-            }
+            };
+            job.accum.merge(&acc);
+            job.merged.insert(chunk);
+            job.follow_up(chunk, &acc);
         }
-        for &id in &job.merged {
-            job.chunks[id as usize] = ChunkState::Done;
-            job.samples_done += job.plan[id as usize].region.samples();
+        for &c in &job.merged {
+            job.chunks[c as usize] = ChunkState::Done;
+            job.samples_done += job.plan[c as usize].region.samples();
         }
-        for &id in &job.skipped {
-            job.chunks[id as usize] = ChunkState::Skipped;
+        for &c in &job.skipped {
+            job.chunks[c as usize] = ChunkState::Skipped;
         }
         if job.spec.settings.target_rel_error.is_some() {
             // Each tile's next pass, if its earlier passes are all merged and it is not skipped.
@@ -881,7 +347,7 @@ impl Coordinator {
                 .filter(|c| !job.skipped.contains(c))
                 .collect();
         } else {
-            job.queue.retain(|id| !job.merged.contains(id));
+            job.queue.retain(|c| !job.merged.contains(c));
         }
         Ok(job)
     }
@@ -915,28 +381,21 @@ impl Coordinator {
         key: Option<&str>,
         request: &str,
     ) -> Result<(String, bool), CoordError> {
-        let (id, created) = (job.id.clone(), job.created);
-        let spec_json = serde_json::to_string(&job.spec).map_err(|e| CoordError::Internal(e.to_string()))?;
-        self.db.execute(
-            "INSERT INTO jobs (id, spec, state, idempotency_key, created, request_hash)
-             VALUES (?1, ?2, 'queued', ?3, ?4, ?5)",
-            rusqlite::params![id, spec_json, key, created as i64, request],
-        )?;
-        if self.persist {
-            std::fs::create_dir_all(job.dir(&self.data).join("partials"))?;
-        }
+        let id = job.id.clone();
+        let row =
+            JobRow { id: id.clone(), spec: job.spec.clone(), state: JobState::Queued, created: job.created };
+        self.store.insert_job(&row, key, request)?;
         self.jobs.insert(id.clone(), job);
         Ok((id, true))
     }
 
     fn job_mut(&mut self, id: &str) -> Result<&mut Job, CoordError> {
-        self.jobs.get_mut(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))
+        self.jobs.get_mut(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))
     }
 
     fn set_state(&mut self, id: &str, state: JobState) -> Result<(), CoordError> {
-        let name =
-            serde_json::to_value(state).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default();
-        self.db.execute("UPDATE jobs SET state = ?1 WHERE id = ?2", rusqlite::params![name, id])?;
+        self.job_mut(id)?;
+        self.store.set_state(id, state)?;
         self.job_mut(id)?.state = state;
         Ok(())
     }
@@ -945,14 +404,14 @@ impl Coordinator {
     pub fn control(&mut self, id: &str, action: &str) -> Result<(), CoordError> {
         let state = self.job_mut(id)?.state;
         let next = match (action, state) {
-            (_, JobState::Done) => return Err(CoordError::Conflict(format!("job {id} is done"))),
+            (_, JobState::Done) => return Err(CoordError::Refused(format!("job {id} is done"))),
             ("cancel", _) => JobState::Cancelled,
-            (_, JobState::Cancelled) => return Err(CoordError::Conflict(format!("job {id} is cancelled"))),
+            (_, JobState::Cancelled) => return Err(CoordError::Refused(format!("job {id} is cancelled"))),
             ("pause", _) => JobState::Paused,
             ("resume", JobState::Paused) => JobState::Queued,
             ("resume", s) => s,
             (a, _) => {
-                return Err(CoordError::BadRequest(format!("unknown action '{a}' (cancel, pause, resume)")))
+                return Err(CoordError::Invalid(format!("unknown action '{a}' (cancel, pause, resume)")))
             }
         };
         if next == JobState::Cancelled {
@@ -968,8 +427,8 @@ impl Coordinator {
     pub fn set_priority(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
         let job = self.job_mut(id)?;
         job.spec.settings.priority = priority;
-        let spec = serde_json::to_string(&job.spec).map_err(|e| CoordError::Internal(e.to_string()))?;
-        self.db.execute("UPDATE jobs SET spec = ?1 WHERE id = ?2", rusqlite::params![spec, id])?;
+        let spec = job.spec.clone();
+        self.store.set_spec(id, &spec)?;
         Ok(())
     }
 
@@ -1030,7 +489,9 @@ impl Coordinator {
         job.workers.insert(worker.to_string(), now);
         if job.state == JobState::Queued {
             job.state = JobState::Running;
-            let _ = self.db.execute("UPDATE jobs SET state = 'running' WHERE id = ?1", [&id]);
+            if let Err(e) = self.store.set_state(&id, JobState::Running) {
+                tracing::warn!(job = %id, "cannot record the job as running: {e}");
+            }
         }
         let job = &self.jobs[&id];
         Some(Lease {
@@ -1046,23 +507,23 @@ impl Coordinator {
     fn leased(&mut self, job: &str, chunk: u32, epoch: u64) -> Result<&mut Job, CoordError> {
         let j = self.job_mut(job)?;
         if j.final_status.is_some() {
-            return Err(CoordError::Conflict(format!(
+            return Err(CoordError::Refused(format!(
                 "chunk {chunk} of job {job} is already merged: the job is done"
             )));
         }
         if j.state == JobState::Cancelled {
-            return Err(CoordError::Conflict(format!("job {job} is cancelled: its leases are revoked")));
+            return Err(CoordError::Refused(format!("job {job} is cancelled: its leases are revoked")));
         }
         let c = j
             .chunks
             .get(chunk as usize)
-            .ok_or_else(|| CoordError::NotFound(format!("job {job} has no chunk {chunk}")))?;
+            .ok_or_else(|| CoordError::Unknown(format!("job {job} has no chunk {chunk}")))?;
         match c {
             ChunkState::Leased { epoch: e, .. } if *e == epoch => Ok(j),
             ChunkState::Done => {
-                Err(CoordError::Conflict(format!("chunk {chunk} of job {job} is already merged")))
+                Err(CoordError::Refused(format!("chunk {chunk} of job {job} is already merged")))
             }
-            _ => Err(CoordError::Conflict(format!(
+            _ => Err(CoordError::Refused(format!(
                 "stale lease: chunk {chunk} of job {job} is not leased under epoch {epoch}"
             ))),
         }
@@ -1103,18 +564,18 @@ impl Coordinator {
     }
 
     /// Checks a partial against its lease and its chunk's rectangle and sample count. Returns
-    /// where to store it first, when this coordinator stores partials. Changes nothing.
+    /// the store to keep it in first, when this coordinator's store is durable. Changes nothing.
     pub fn check_partial(
         &mut self,
         job: &str,
         chunk: u32,
         epoch: u64,
         acc: &Accum,
-    ) -> Result<Option<PathBuf>, CoordError> {
-        let (data, persist) = (self.data.clone(), self.persist);
+    ) -> Result<Option<Arc<dyn Store>>, CoordError> {
+        let store = self.store.clone();
         let j = self.leased(job, chunk, epoch)?;
-        j.fits(chunk, acc).map_err(CoordError::BadRequest)?;
-        Ok(persist.then(|| j.dir(&data).join("partials").join(format!("{chunk}.zst"))))
+        j.fits(chunk, acc).map_err(CoordError::Invalid)?;
+        Ok(store.durable().then_some(store))
     }
 
     /// Merges a checked (and, when this coordinator stores partials, stored) partial; at most
@@ -1132,7 +593,7 @@ impl Coordinator {
             ChunkState::Leased { worker, since, .. } => (worker.clone(), *since),
             _ => unreachable!("checked by leased()"),
         };
-        let (data, persist, interval) = (self.data.clone(), self.persist, self.checkpoint_interval);
+        let (durable, interval) = (self.store.durable(), self.checkpoint_interval);
         let j = self.job_mut(job)?;
         if acc.dropped.total() > 0 {
             tracing::warn!(job, chunk, worker = %worker, "chunk dropped samples: {}", acc.dropped);
@@ -1153,14 +614,14 @@ impl Coordinator {
         }
         j.since_checkpoint += 1;
         let finished = j.complete();
-        let snap = if persist { j.snapshot(&data, interval) } else { None };
+        let snap = if durable { j.snapshot(interval) } else { None };
         self.seen(&worker, now);
         if let Some(w) = self.workers.get_mut(&worker) {
             w.chunks_done += 1;
             w.samples_done += samples;
         }
         metrics::histogram!("furnace_merge_duration_seconds").record(t0.elapsed().as_secs_f64());
-        if !persist && finished {
+        if !durable && finished {
             self.set_state(job, JobState::Done)?;
         }
         Ok(snap)
@@ -1249,7 +710,7 @@ impl Coordinator {
     /// Records a written checkpoint (or its failure); a job finished meanwhile gets its final
     /// checkpoint next.
     fn checkpoint_written(&mut self, snap: &Snapshot, result: &Result<(), CoordError>) -> Option<Snapshot> {
-        let (data, interval) = (self.data.clone(), self.checkpoint_interval);
+        let interval = self.checkpoint_interval;
         let j = self.jobs.get_mut(&snap.job)?;
         j.checkpointing = false;
         if let Err(e) = result {
@@ -1259,20 +720,21 @@ impl Coordinator {
         }
         j.checkpoint_failed = None;
         j.checkpointed.extend(&snap.ids);
-        if snap.finished {
+        if snap.status.is_some() {
             if let Err(e) = self.set_state(&snap.job, JobState::Done) {
                 tracing::error!(job = %snap.job, "cannot record the job as done: {e}");
             }
             tracing::info!(job = %snap.job, "job done");
-            // A stored job's result is on disk: its memory goes (`furnace render`'s stays).
-            if self.persist {
-                if let Err(e) = self.evict(&snap.job) {
+            // A stored job's result and final status are stored: its memory goes
+            // (`furnace render`'s stays).
+            if self.store.durable() {
+                if let Err(e) = self.evict(&snap.job, false) {
                     tracing::error!(job = %snap.job, "cannot release the finished job: {e}");
                 }
             }
             return None;
         }
-        j.snapshot(&data, interval)
+        j.snapshot(interval)
     }
 
     /// The scene of a job, when this coordinator keeps scenes.
@@ -1281,42 +743,7 @@ impl Coordinator {
     }
 
     pub fn status(&self, id: &str) -> Result<JobStatus, CoordError> {
-        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
-        if let Some(st) = &j.final_status {
-            return Ok(JobStatus {
-                settings: j.spec.settings.clone(),
-                errors: j.errors.clone(),
-                ..(**st).clone()
-            });
-        }
-        let (done, leased, pending) = j.counts();
-        let rate = match (j.recent.front(), j.recent.back()) {
-            (Some(a), Some(b)) if b.0 > a.0 => {
-                let s: u64 = j.recent.iter().skip(1).map(|x| x.1).sum();
-                s as f64 / b.0.duration_since(a.0).as_secs_f64()
-            }
-            _ => 0.0,
-        };
-        let left = j.samples_left();
-        Ok(JobStatus {
-            id: j.id.clone(),
-            state: j.state,
-            settings: j.spec.settings.clone(),
-            chunks_total: j.plan.len() as u64,
-            chunks_done: done,
-            chunks_leased: leased,
-            chunks_pending: pending,
-            chunks_skipped: j.skipped.len() as u64,
-            samples_done: j.samples_done,
-            samples_total: j.samples_done + left,
-            samples_per_second: rate,
-            eta_seconds: (rate > 0.0).then(|| left as f64 / rate),
-            estimated_rel_mse: Some(j.estimated_rel_mse()).filter(|e| e.is_finite()),
-            dropped_samples: j.accum.dropped,
-            workers: j.workers.keys().cloned().collect(),
-            errors: j.errors.clone(),
-            plan: j.render_plan.clone(),
-        })
+        Ok(self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?.status())
     }
 
     pub fn job_ids(&self) -> Vec<String> {
@@ -1326,9 +753,9 @@ impl Coordinator {
     /// The merged image so far.
     /// The job's image: developed from the accumulation, or (a finished job's) its result file.
     pub fn picture(&self, id: &str) -> Result<Picture, CoordError> {
-        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
         Ok(match j.final_status {
-            Some(_) => Picture::File(j.dir(&self.data).join("result.exr")),
+            Some(_) => Picture::File(self.store.result_path(id)),
             None => Picture::Developed(j.accum.develop()),
         })
     }
@@ -1340,7 +767,7 @@ impl Coordinator {
     /// Bytes the job's plan, chunk states and accumulation hold in memory (the larger part
     /// of what a job costs: 96 bytes a pixel).
     pub fn held_bytes(&self, id: &str) -> Result<usize, CoordError> {
-        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
         Ok(j.accum.pixels.capacity() * std::mem::size_of::<furnace_core::film::PixelSum>()
             + j.plan.capacity() * std::mem::size_of::<ChunkSpec>()
             + j.chunks.capacity() * std::mem::size_of::<ChunkState>()
@@ -1352,71 +779,42 @@ impl Coordinator {
     /// are refused from now on.
     pub fn delete(&mut self, id: &str) -> Result<Vec<PathBuf>, CoordError> {
         if id.is_empty() || !id.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') {
-            return Err(CoordError::NotFound(format!("no job '{id}'")));
+            return Err(CoordError::Unknown(format!("no job '{id}'")));
         }
         // A job left out at the last start (its scene files gone) has a row but no state.
-        let spec: Option<String> =
-            self.db.query_row("SELECT spec FROM jobs WHERE id = ?1", [id], |r| r.get(0)).ok();
-        let rows = self.db.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
-        if rows == 0 && !self.jobs.contains_key(id) {
-            return Err(CoordError::NotFound(format!("no job '{id}'")));
+        let gone = self.store.delete_job(id)?;
+        if gone.is_none() && !self.jobs.contains_key(id) {
+            return Err(CoordError::Unknown(format!("no job '{id}'")));
         }
         self.jobs.remove(id);
-        let mut gone = vec![self.data.join("jobs").join(id)];
-        // Its bundle and stored files too, unless another job uses them.
-        if let Some(bundle) = spec.and_then(|s| serde_json::from_str::<JobSpec>(&s).ok()).map(|s| s.bundle) {
-            let others: Vec<Bundle> = {
-                let mut st = self.db.prepare("SELECT spec FROM jobs")?;
-                let specs = st.query_map([], |r| r.get::<_, String>(0))?;
-                specs
-                    .flatten()
-                    .filter_map(|s| serde_json::from_str::<JobSpec>(&s).ok())
-                    .map(|s| s.bundle)
-                    .collect()
-            };
-            let hash = bundle.hash();
-            if !others.iter().any(|b| b.hash() == hash) {
-                gone.push(self.bundle_dir(&hash));
-                gone.push(self.data.join("bundles").join(format!("{hash}.json")));
-            }
-            for h in bundle.files.values() {
-                if !others.iter().any(|b| b.files.values().any(|o| o == h)) {
-                    gone.push(self.file_path(h));
-                }
-            }
-        }
         tracing::info!(job = %id, "job deleted");
-        Ok(gone)
+        Ok(gone.unwrap_or_default())
     }
 
-    /// Releases a finished job's memory, keeping its final status (also written to
-    /// `status.json`, so that a restart need not load its scene).
-    fn evict(&mut self, id: &str) -> Result<(), CoordError> {
+    /// Releases a finished job's memory, keeping its final status (stored too, with `store`,
+    /// so that a restart need not load its scene; the final checkpoint has stored it already).
+    fn evict(&mut self, id: &str, store: bool) -> Result<(), CoordError> {
         let st = self.status(id)?;
-        let (data, persist) = (self.data.clone(), self.persist);
-        let j = self.job_mut(id)?;
-        if persist {
-            let json = serde_json::to_vec(&st).map_err(|e| CoordError::Internal(e.to_string()))?;
-            write_atomic(&j.dir(&data).join("status.json"), &json)?;
+        if store {
+            self.store.save_status(id, &st)?;
         }
-        j.release(st);
+        self.job_mut(id)?.release(st);
         Ok(())
     }
 
     pub fn result_path(&self, id: &str) -> Result<PathBuf, CoordError> {
-        let j = self.jobs.get(id).ok_or_else(|| CoordError::NotFound(format!("no job '{id}'")))?;
+        let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
         if j.state != JobState::Done {
-            return Err(CoordError::Conflict(format!("job {id} is not done ({:?})", j.state)));
+            return Err(CoordError::Refused(format!("job {id} is not done ({:?})", j.state)));
         }
-        Ok(j.dir(&self.data).join("result.exr"))
+        Ok(self.store.result_path(id))
     }
 
     pub fn bundle_manifest(&self, hash: &str) -> Result<Vec<u8>, CoordError> {
         if !furnace_proto::is_hash(hash) {
-            return Err(CoordError::BadRequest(format!("'{hash}' is not a bundle hash")));
+            return Err(CoordError::Invalid(format!("'{hash}' is not a bundle hash")));
         }
-        std::fs::read(self.data.join("bundles").join(format!("{hash}.json")))
-            .map_err(|_| CoordError::NotFound(format!("no bundle {hash}")))
+        self.store.bundle_manifest(hash).ok_or_else(|| CoordError::Unknown(format!("no bundle {hash}")))
     }
 }
 
@@ -1434,13 +832,13 @@ pub fn accept_partial(
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
     // Each guard is dropped before a refusal is counted: count_duplicate locks again.
     let checked = lock().check_partial(job, chunk, epoch, acc);
-    let path = checked.inspect_err(|_| count_duplicate(coord, job, chunk))?;
-    if let Some(path) = path {
+    let store = checked.inspect_err(|_| count_duplicate(coord, job, chunk))?;
+    if let Some(store) = store {
         // Chunks are deterministic: a partial stored by a lease that loses the race below holds
         // the same bytes as the one merged, and a restart merges each chunk at most once.
         match encoded {
-            Some(bytes) => write_atomic(&path, bytes)?,
-            None => write_atomic(&path, &encode_partial(acc))?,
+            Some(bytes) => store.save_partial(job, chunk, bytes)?,
+            None => store.save_partial(job, chunk, &encode_partial(acc))?,
         }
     }
     let merged = lock().merge_partial(job, chunk, epoch, acc, Instant::now());
@@ -1451,8 +849,9 @@ pub fn accept_partial(
 /// Writes a checkpoint and those due after it, without the lock: leases and uploads go on
 /// meanwhile.
 fn write_checkpoints(coord: &Mutex<Coordinator>, mut snap: Option<Snapshot>) -> Result<(), CoordError> {
+    let store = coord.lock().unwrap_or_else(|e| e.into_inner()).store();
     while let Some(s) = snap {
-        let result = s.write();
+        let result = s.write(&*store);
         snap = coord.lock().unwrap_or_else(|e| e.into_inner()).checkpoint_written(&s, &result);
         result?;
     }
@@ -1465,14 +864,14 @@ fn write_checkpoints(coord: &Mutex<Coordinator>, mut snap: Option<Snapshot>) -> 
 pub fn retry_checkpoints(coord: &Mutex<Coordinator>) {
     let snaps: Vec<Snapshot> = {
         let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
-        let (data, retry) = (c.data.clone(), c.checkpoint_retry);
+        let retry = c.checkpoint_retry;
         c.jobs
             .values_mut()
             .filter(|j| !j.checkpointing && j.checkpoint_failed.is_some_and(|t| t.elapsed() >= retry))
             .filter(|j| !matches!(j.state, JobState::Done | JobState::Cancelled))
             .filter_map(|j| {
                 j.checkpoint_failed = None;
-                j.snapshot(&data, Duration::ZERO)
+                j.snapshot(Duration::ZERO)
             })
             .collect()
     };
@@ -1538,25 +937,10 @@ fn count_duplicate(coord: &Mutex<Coordinator>, job: &str, chunk: u32) {
     }
 }
 
-/// A job's merge at one moment, to be checkpointed outside the lock.
-struct Snapshot {
-    job: String,
-    dir: PathBuf,
-    /// Chunks in `accum`, sorted.
-    ids: Vec<u32>,
-    /// Chunks skipped (noise-target jobs), sorted.
-    skipped: Vec<u32>,
-    /// Those not in the previous checkpoint: their partial files go once this one is written.
-    new: Vec<u32>,
-    accum: Accum,
-    /// Every chunk is in: write `result.exr` too.
-    finished: bool,
-}
-
 impl Snapshot {
-    /// Writes the checkpoint (merged chunk ids and accumulation) atomically, then drops the
-    /// partials in it; for a finished job, also `result.exr`.
-    fn write(&self) -> Result<(), CoordError> {
+    /// Stores the checkpoint (merged chunk ids and accumulation), which drops the partials in
+    /// it; for a finished job, also its result and final status.
+    fn write(&self, store: &dyn Store) -> Result<(), CoordError> {
         let t = Instant::now();
         let header =
             serde_json::to_vec(&CheckpointHeader { merged: self.ids.clone(), skipped: self.skipped.clone() })
@@ -1564,14 +948,10 @@ impl Snapshot {
         let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
         bytes.extend_from_slice(&header);
         bytes.extend_from_slice(&encode_partial(&self.accum));
-        write_atomic(&self.dir.join("checkpoint"), &bytes)?;
-        for id in &self.new {
-            std::fs::remove_file(self.dir.join("partials").join(format!("{id}.zst"))).ok();
-        }
-        if self.finished {
-            // Written atomically (temporary file, rename) before the job is marked done.
-            let result = self.dir.join("result.exr");
-            self.accum.develop().write_exr(&result).map_err(|e| CoordError::Internal(e.to_string()))?;
+        let result = self.status.as_ref().map(|_| self.accum.develop());
+        store.save_checkpoint(&self.job, &bytes, &self.new, result.as_ref())?;
+        if let Some(st) = &self.status {
+            store.save_status(&self.job, st)?;
         }
         metrics::histogram!("furnace_checkpoint_duration_seconds").record(t.elapsed().as_secs_f64());
         metrics::counter!("furnace_checkpoint_bytes_total").increment(bytes.len() as u64);
@@ -1684,7 +1064,7 @@ mod tests {
         for l in &leases {
             let acc = furnace_core::render_region(&scene, &l.chunk.region, 0).0;
             let e = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None).unwrap_err();
-            assert!(matches!(&e, CoordError::Conflict(m) if m.contains("cancelled")), "{e:?}");
+            assert!(matches!(&e, CoordError::Refused(m) if m.contains("cancelled")), "{e:?}");
         }
         let c = coord.lock().unwrap();
         assert_eq!(c.status(&job).unwrap().state, JobState::Cancelled);

@@ -1,0 +1,32 @@
+//! The coordinator's errors, named for what went wrong; the API maps them to HTTP statuses.
+
+#[derive(Debug, thiserror::Error)]
+pub enum CoordError {
+    /// The request is malformed: bad JSON, a bad hash, a bundle path that cannot be laid out.
+    #[error("{0}")]
+    Invalid(String),
+    /// No such job, chunk, file or bundle.
+    #[error("{0}")]
+    Unknown(String),
+    /// The request contradicts what the coordinator holds: a stale lease, a chunk already
+    /// merged, a finished or cancelled job, an idempotency key used for another spec.
+    #[error("{0}")]
+    Refused(String),
+    /// The job cannot be rendered: its scene fails to load, or its settings exceed a limit.
+    #[error("{0}")]
+    Unrenderable(String),
+    /// Storage failed (disk, database) or the like: worth trying again.
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl From<std::io::Error> for CoordError {
+    fn from(e: std::io::Error) -> Self {
+        CoordError::Internal(e.to_string())
+    }
+}
+impl From<rusqlite::Error> for CoordError {
+    fn from(e: rusqlite::Error) -> Self {
+        CoordError::Internal(format!("database: {e}"))
+    }
+}

@@ -1,0 +1,685 @@
+//! Where the coordinator keeps what must outlive it. [`Store`] is everything the job core asks
+//! of storage; [`DiskStore`] keeps it in a data folder (SQLite rows, content-addressed files,
+//! each job's partials, checkpoint, status and result); [`MemStore`] keeps job rows in memory
+//! and nothing else, for `furnace render`, whose jobs live as long as the process.
+//!
+//! The coordinator calls the job-row methods under its lock (they are small); every method
+//! that writes or reads a file is called without it.
+//!
+//! Layout of a data folder:
+//! - `furnace.db`: jobs (spec, state, idempotency key, request hash) and the boot counter;
+//! - `files/{hash}`: bundle files by BLAKE3 hash; `bundles/{hash}.json` and `bundles/{hash}/`:
+//!   a bundle's manifest and its files laid out under their paths;
+//! - `jobs/{id}/partials/{chunk}.zst`, `checkpoint`, `status.json`, `result.exr`,
+//!   `quarantine/`.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use furnace_core::{Image, Scene};
+use furnace_proto::{Bundle, JobSpec, JobState, JobStatus};
+
+use crate::error::CoordError;
+
+/// A job as stored: what a restart needs to rebuild it.
+#[derive(Clone, Debug)]
+pub struct JobRow {
+    pub id: String,
+    pub spec: JobSpec,
+    pub state: JobState,
+    pub created: u64,
+}
+
+/// What the coordinator stores, and where from it restarts.
+pub trait Store: Send + Sync {
+    /// Whether anything stored outlives the process. A store that keeps nothing gets no
+    /// partials or checkpoints to write, and its finished jobs keep their image in memory.
+    fn durable(&self) -> bool;
+    /// Counts a start of the coordinator and returns its number (1 for the first): epochs
+    /// handed out after a restart start above every epoch of earlier starts.
+    fn boot(&self) -> Result<u64, CoordError>;
+
+    // Job rows.
+    /// Every stored job, oldest first; a row that cannot be read is returned as its id and
+    /// the reason.
+    fn jobs(&self) -> Result<Vec<Result<JobRow, (String, String)>>, CoordError>;
+    /// Stores a new job (state queued) with the idempotency key it was submitted with and the
+    /// hash of the request, and makes room for its files.
+    fn insert_job(&self, row: &JobRow, key: Option<&str>, request: &str) -> Result<(), CoordError>;
+    fn set_state(&self, id: &str, state: JobState) -> Result<(), CoordError>;
+    fn set_spec(&self, id: &str, spec: &JobSpec) -> Result<(), CoordError>;
+    /// The job an idempotency key names, with the hash of the request it was first used with.
+    fn keyed(&self, key: &str) -> Result<Option<(String, Option<String>)>, CoordError>;
+    /// Removes the job's row. Returns `None` when there was none, else what to remove
+    /// (outside the lock, with [`remove_paths`]): the job's folder, and its bundle and files
+    /// when no other job uses them.
+    fn delete_job(&self, id: &str) -> Result<Option<Vec<PathBuf>>, CoordError>;
+
+    // A job's files.
+    /// Stores an accepted partial durably (before it is acknowledged).
+    fn save_partial(&self, job: &str, chunk: u32, bytes: &[u8]) -> Result<(), CoordError>;
+    /// Stores a checkpoint (its bytes replace the previous one), then drops the partials it
+    /// now holds (`merged`); with `result`, also the finished job's image.
+    fn save_checkpoint(
+        &self,
+        job: &str,
+        bytes: &[u8],
+        merged: &[u32],
+        result: Option<&Image>,
+    ) -> Result<(), CoordError>;
+    /// The last checkpoint's bytes, if there is one.
+    fn checkpoint(&self, job: &str) -> Option<Vec<u8>>;
+    /// The chunks whose stored partials are not in the checkpoint, in order.
+    fn partials(&self, job: &str) -> Vec<u32>;
+    fn partial(&self, job: &str, chunk: u32) -> Result<Vec<u8>, String>;
+    fn drop_partial(&self, job: &str, chunk: u32);
+    /// Sets a stored file that cannot be used (`checkpoint`, or a chunk's partial) aside;
+    /// returns its name.
+    fn quarantine(&self, job: &str, chunk: Option<u32>) -> String;
+    /// Stores the final status of a finished job (so that a restart need not load its scene).
+    fn save_status(&self, job: &str, status: &JobStatus) -> Result<(), CoordError>;
+    /// A finished job's final status, when it and its result are stored.
+    fn final_status(&self, job: &str) -> Option<JobStatus>;
+    /// Where a finished job's result is.
+    fn result_path(&self, job: &str) -> PathBuf;
+
+    // Content-addressed files and bundles.
+    /// Stores a file under its hash (checked by the caller); false when it was there already.
+    fn put_file(&self, hash: &str, bytes: &[u8]) -> Result<bool, CoordError>;
+    fn has_file(&self, hash: &str) -> bool;
+    fn file(&self, hash: &str) -> Option<Vec<u8>>;
+    fn bundle_manifest(&self, hash: &str) -> Option<Vec<u8>>;
+    /// Lays the bundle's files out under their paths (once per bundle) and loads its scene from
+    /// there with `load`; the layout and the manifest are kept only if `load` succeeds.
+    fn load_bundle(
+        &self,
+        bundle: &Bundle,
+        load: &dyn Fn(&Path) -> Result<Scene, CoordError>,
+    ) -> Result<Scene, CoordError>;
+}
+
+/// Removes files and folders, logging what cannot be removed (a path already gone is fine).
+pub fn remove_paths(paths: &[PathBuf]) {
+    for p in paths {
+        let removed = if p.is_dir() { std::fs::remove_dir_all(p) } else { std::fs::remove_file(p) };
+        if let Err(e) = removed {
+            if e.kind() != std::io::ErrorKind::NotFound {
+                tracing::warn!("removing {}: {e}", p.display());
+            }
+        }
+    }
+}
+
+/// The database: jobs (spec, state, idempotency key) and the boot counter.
+const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS jobs (
+        id TEXT PRIMARY KEY, spec TEXT NOT NULL, state TEXT NOT NULL,
+        idempotency_key TEXT UNIQUE, created INTEGER NOT NULL);
+    CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);";
+
+/// Brings a database made by an earlier version up to date.
+fn migrate(db: &rusqlite::Connection) -> Result<(), CoordError> {
+    let has = |col: &str| -> Result<bool, CoordError> {
+        let n: i64 =
+            db.query_row("SELECT COUNT(*) FROM pragma_table_info('jobs') WHERE name = ?1", [col], |r| {
+                r.get(0)
+            })?;
+        Ok(n > 0)
+    };
+    if !has("request_hash")? {
+        // The hash of the spec an idempotency key was first used with.
+        db.execute_batch("ALTER TABLE jobs ADD COLUMN request_hash TEXT")?;
+    }
+    Ok(())
+}
+
+fn state_name(state: JobState) -> &'static str {
+    state.name()
+}
+
+fn json<T: serde::Serialize>(v: &T) -> Result<String, CoordError> {
+    serde_json::to_string(v).map_err(|e| CoordError::Internal(e.to_string()))
+}
+
+/// A data folder: SQLite rows and files.
+pub struct DiskStore {
+    data: PathBuf,
+    db: Mutex<rusqlite::Connection>,
+}
+
+impl DiskStore {
+    /// Opens (or creates) a data folder, removing temporary files of writes a crash
+    /// interrupted.
+    pub fn open(data: &Path) -> Result<DiskStore, CoordError> {
+        for d in ["files", "jobs", "bundles"] {
+            std::fs::create_dir_all(data.join(d))?;
+        }
+        let tmp = |e: &std::fs::DirEntry| e.file_name().to_string_lossy().ends_with(".tmp");
+        // Bundle folders of submissions a crash interrupted.
+        for e in std::fs::read_dir(data.join("bundles"))?.flatten().filter(tmp) {
+            std::fs::remove_dir_all(e.path()).ok();
+        }
+        for job in std::fs::read_dir(data.join("jobs"))?.flatten() {
+            for d in [job.path(), job.path().join("partials")] {
+                for e in std::fs::read_dir(d).into_iter().flatten().flatten().filter(tmp) {
+                    std::fs::remove_file(e.path()).ok();
+                }
+            }
+        }
+        let db = rusqlite::Connection::open(data.join("furnace.db"))?;
+        db.pragma_update(None, "journal_mode", "WAL")?;
+        db.pragma_update(None, "synchronous", "FULL")?;
+        db.execute_batch(SCHEMA)?;
+        migrate(&db)?;
+        Ok(DiskStore { data: data.to_path_buf(), db: Mutex::new(db) })
+    }
+
+    fn db(&self) -> std::sync::MutexGuard<'_, rusqlite::Connection> {
+        self.db.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn job_dir(&self, job: &str) -> PathBuf {
+        self.data.join("jobs").join(job)
+    }
+
+    fn partial_path(&self, job: &str, chunk: u32) -> PathBuf {
+        self.job_dir(job).join("partials").join(format!("{chunk}.zst"))
+    }
+
+    fn file_path(&self, hash: &str) -> PathBuf {
+        self.data.join("files").join(hash)
+    }
+
+    fn bundle_dir(&self, hash: &str) -> PathBuf {
+        self.data.join("bundles").join(hash)
+    }
+
+    fn manifest_path(&self, hash: &str) -> PathBuf {
+        self.data.join("bundles").join(format!("{hash}.json"))
+    }
+
+    /// The bundle's files under their paths in a new folder `dir`: hard links to the stored
+    /// files (copies where links cannot be made).
+    fn lay_out(&self, b: &Bundle, dir: &Path) -> Result<(), CoordError> {
+        for (path, h) in &b.files {
+            let dst = dir.join(path);
+            let made = dst.parent().map_or(Ok(()), std::fs::create_dir_all).and_then(|_| {
+                std::fs::hard_link(self.file_path(h), &dst)
+                    .or_else(|_| std::fs::copy(self.file_path(h), &dst).map(|_| ()))
+            });
+            made.map_err(|e| CoordError::Invalid(format!("bundle path '{path}' cannot be laid out: {e}")))?;
+        }
+        Ok(())
+    }
+}
+
+impl Store for DiskStore {
+    fn durable(&self) -> bool {
+        true
+    }
+
+    fn boot(&self) -> Result<u64, CoordError> {
+        let db = self.db();
+        let boot: i64 =
+            db.query_row("SELECT value FROM meta WHERE key = 'boot'", [], |r| r.get(0)).unwrap_or(0) + 1;
+        db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('boot', ?1)", [boot])?;
+        Ok(boot as u64)
+    }
+
+    fn jobs(&self) -> Result<Vec<Result<JobRow, (String, String)>>, CoordError> {
+        let db = self.db();
+        let mut st = db.prepare("SELECT id, spec, state, created FROM jobs ORDER BY created, id")?;
+        let rows = st.query_map([], |r| {
+            Ok((r.get::<_, String>(0)?, r.get::<_, String>(1)?, r.get::<_, String>(2)?, r.get::<_, i64>(3)?))
+        })?;
+        let rows: Vec<_> = rows.collect::<Result<_, _>>()?;
+        Ok(rows
+            .into_iter()
+            .map(|(id, spec, state, created)| {
+                let spec = serde_json::from_str::<JobSpec>(&spec)
+                    .map_err(|e| (id.clone(), format!("stored spec unreadable: {e}")))?;
+                let state = serde_json::from_value::<JobState>(serde_json::Value::String(state))
+                    .map_err(|e| (id.clone(), format!("stored state unreadable: {e}")))?;
+                Ok(JobRow { id, spec, state, created: created.max(0) as u64 })
+            })
+            .collect())
+    }
+
+    fn insert_job(&self, row: &JobRow, key: Option<&str>, request: &str) -> Result<(), CoordError> {
+        self.db().execute(
+            "INSERT INTO jobs (id, spec, state, idempotency_key, created, request_hash)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            rusqlite::params![
+                row.id,
+                json(&row.spec)?,
+                state_name(row.state),
+                key,
+                row.created as i64,
+                request
+            ],
+        )?;
+        std::fs::create_dir_all(self.job_dir(&row.id).join("partials"))?;
+        Ok(())
+    }
+
+    fn set_state(&self, id: &str, state: JobState) -> Result<(), CoordError> {
+        self.db()
+            .execute("UPDATE jobs SET state = ?1 WHERE id = ?2", rusqlite::params![state_name(state), id])?;
+        Ok(())
+    }
+
+    fn set_spec(&self, id: &str, spec: &JobSpec) -> Result<(), CoordError> {
+        self.db().execute("UPDATE jobs SET spec = ?1 WHERE id = ?2", rusqlite::params![json(spec)?, id])?;
+        Ok(())
+    }
+
+    fn keyed(&self, key: &str) -> Result<Option<(String, Option<String>)>, CoordError> {
+        Ok(self
+            .db()
+            .query_row("SELECT id, request_hash FROM jobs WHERE idempotency_key = ?1", [key], |r| {
+                Ok((r.get(0)?, r.get(1)?))
+            })
+            .ok())
+    }
+
+    fn delete_job(&self, id: &str) -> Result<Option<Vec<PathBuf>>, CoordError> {
+        let db = self.db();
+        let spec: Option<String> =
+            db.query_row("SELECT spec FROM jobs WHERE id = ?1", [id], |r| r.get(0)).ok();
+        if db.execute("DELETE FROM jobs WHERE id = ?1", [id])? == 0 {
+            return Ok(None);
+        }
+        let mut gone = vec![self.job_dir(id)];
+        // Its bundle and stored files too, unless another job uses them.
+        if let Some(bundle) = spec.and_then(|s| serde_json::from_str::<JobSpec>(&s).ok()).map(|s| s.bundle) {
+            let others: Vec<Bundle> = {
+                let mut st = db.prepare("SELECT spec FROM jobs")?;
+                let specs = st.query_map([], |r| r.get::<_, String>(0))?;
+                specs
+                    .flatten()
+                    .filter_map(|s| serde_json::from_str::<JobSpec>(&s).ok())
+                    .map(|s| s.bundle)
+                    .collect()
+            };
+            let hash = bundle.hash();
+            if !others.iter().any(|b| b.hash() == hash) {
+                gone.push(self.bundle_dir(&hash));
+                gone.push(self.manifest_path(&hash));
+            }
+            for h in bundle.files.values() {
+                if !others.iter().any(|b| b.files.values().any(|o| o == h)) {
+                    gone.push(self.file_path(h));
+                }
+            }
+        }
+        Ok(Some(gone))
+    }
+
+    fn save_partial(&self, job: &str, chunk: u32, bytes: &[u8]) -> Result<(), CoordError> {
+        Ok(write_atomic(&self.partial_path(job, chunk), bytes)?)
+    }
+
+    fn save_checkpoint(
+        &self,
+        job: &str,
+        bytes: &[u8],
+        merged: &[u32],
+        result: Option<&Image>,
+    ) -> Result<(), CoordError> {
+        write_atomic(&self.job_dir(job).join("checkpoint"), bytes)?;
+        for &id in merged {
+            std::fs::remove_file(self.partial_path(job, id)).ok();
+        }
+        if let Some(img) = result {
+            // Written atomically (temporary file, rename) before the job is marked done.
+            img.write_exr(&self.result_path(job)).map_err(|e| CoordError::Internal(e.to_string()))?;
+        }
+        Ok(())
+    }
+
+    fn checkpoint(&self, job: &str) -> Option<Vec<u8>> {
+        std::fs::read(self.job_dir(job).join("checkpoint")).ok()
+    }
+
+    fn partials(&self, job: &str) -> Vec<u32> {
+        let Ok(entries) = std::fs::read_dir(self.job_dir(job).join("partials")) else { return Vec::new() };
+        let mut ids: Vec<u32> = entries
+            .flatten()
+            .filter_map(|e| e.file_name().into_string().ok()?.strip_suffix(".zst")?.parse().ok())
+            .collect();
+        ids.sort();
+        ids
+    }
+
+    fn partial(&self, job: &str, chunk: u32) -> Result<Vec<u8>, String> {
+        std::fs::read(self.partial_path(job, chunk)).map_err(|e| e.to_string())
+    }
+
+    fn drop_partial(&self, job: &str, chunk: u32) {
+        std::fs::remove_file(self.partial_path(job, chunk)).ok();
+    }
+
+    fn quarantine(&self, job: &str, chunk: Option<u32>) -> String {
+        let file = match chunk {
+            Some(c) => self.partial_path(job, c),
+            None => self.job_dir(job).join("checkpoint"),
+        };
+        let dir = self.job_dir(job).join("quarantine");
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let moved = std::fs::create_dir_all(&dir).and_then(|_| std::fs::rename(&file, dir.join(&name)));
+        if let Err(m) = moved {
+            tracing::error!(job, "cannot move {} aside: {m}", file.display());
+            std::fs::remove_file(&file).ok();
+        }
+        name
+    }
+
+    fn save_status(&self, job: &str, status: &JobStatus) -> Result<(), CoordError> {
+        let bytes = serde_json::to_vec(status).map_err(|e| CoordError::Internal(e.to_string()))?;
+        Ok(write_atomic(&self.job_dir(job).join("status.json"), &bytes)?)
+    }
+
+    fn final_status(&self, job: &str) -> Option<JobStatus> {
+        let bytes = std::fs::read(self.job_dir(job).join("status.json")).ok()?;
+        let status = serde_json::from_slice::<JobStatus>(&bytes).ok()?;
+        self.result_path(job).exists().then_some(status)
+    }
+
+    fn result_path(&self, job: &str) -> PathBuf {
+        self.job_dir(job).join("result.exr")
+    }
+
+    fn put_file(&self, hash: &str, bytes: &[u8]) -> Result<bool, CoordError> {
+        // A stored file is kept only while it still hashes to its name; a damaged one is
+        // replaced.
+        let path = self.file_path(hash);
+        if std::fs::read(&path).is_ok_and(|b| blake3::hash(&b).to_hex().as_str() == hash) {
+            return Ok(false);
+        }
+        write_atomic(&path, bytes)?;
+        Ok(true)
+    }
+
+    fn has_file(&self, hash: &str) -> bool {
+        self.file_path(hash).is_file()
+    }
+
+    fn file(&self, hash: &str) -> Option<Vec<u8>> {
+        std::fs::read(self.file_path(hash)).ok()
+    }
+
+    fn bundle_manifest(&self, hash: &str) -> Option<Vec<u8>> {
+        std::fs::read(self.manifest_path(hash)).ok()
+    }
+
+    fn load_bundle(
+        &self,
+        b: &Bundle,
+        load: &dyn Fn(&Path) -> Result<Scene, CoordError>,
+    ) -> Result<Scene, CoordError> {
+        let missing: Vec<&str> =
+            b.files.iter().filter(|(_, h)| !self.has_file(h)).map(|(p, _)| p.as_str()).collect();
+        if !missing.is_empty() {
+            return Err(CoordError::Invalid(format!(
+                "bundle files not uploaded yet: {} (PUT /v1/files/{{hash}} first)",
+                missing.join(", ")
+            )));
+        }
+        let hash = b.hash();
+        let dir = self.bundle_dir(&hash);
+        let scene = if dir.is_dir() {
+            // Laid out by an earlier submission.
+            load(&dir)?
+        } else {
+            // Laid out in a folder of this submission's own, loaded from there, then moved into
+            // place: concurrent submissions of one bundle never share a half-made folder, and
+            // one that fails leaves nothing behind.
+            static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+            let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let tmp = self.data.join("bundles").join(format!(".{hash}.{}.{n}.tmp", std::process::id()));
+            let loaded = self.lay_out(b, &tmp).and_then(|_| load(&tmp));
+            // Another submission may have put the same bundle in place meanwhile: keep that.
+            if loaded.is_err() || std::fs::rename(&tmp, &dir).is_err() {
+                std::fs::remove_dir_all(&tmp).ok();
+            }
+            loaded?
+        };
+        let manifest = self.manifest_path(&hash);
+        if !manifest.exists() {
+            write_atomic(&manifest, json(b)?.as_bytes())?;
+        }
+        Ok(scene)
+    }
+}
+
+/// Job rows in memory, and no files: jobs live as long as the process.
+#[derive(Default)]
+pub struct MemStore {
+    /// Rows by id, in order of insertion, with their idempotency key and request hash.
+    rows: Mutex<Vec<(JobRow, Option<String>, String)>>,
+}
+
+impl MemStore {
+    pub fn new() -> MemStore {
+        MemStore::default()
+    }
+
+    fn rows(&self) -> std::sync::MutexGuard<'_, Vec<(JobRow, Option<String>, String)>> {
+        self.rows.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn with_row(&self, id: &str, f: impl FnOnce(&mut JobRow)) {
+        if let Some(r) = self.rows().iter_mut().find(|r| r.0.id == id) {
+            f(&mut r.0);
+        }
+    }
+}
+
+impl Store for MemStore {
+    fn durable(&self) -> bool {
+        false
+    }
+    fn boot(&self) -> Result<u64, CoordError> {
+        Ok(1)
+    }
+    fn jobs(&self) -> Result<Vec<Result<JobRow, (String, String)>>, CoordError> {
+        Ok(self.rows().iter().map(|r| Ok(r.0.clone())).collect())
+    }
+    fn insert_job(&self, row: &JobRow, key: Option<&str>, request: &str) -> Result<(), CoordError> {
+        let mut rows = self.rows();
+        if key.is_some() && rows.iter().any(|r| r.1.as_deref() == key) {
+            return Err(CoordError::Internal("idempotency key stored twice".into()));
+        }
+        rows.push((row.clone(), key.map(String::from), request.to_string()));
+        Ok(())
+    }
+    fn set_state(&self, id: &str, state: JobState) -> Result<(), CoordError> {
+        self.with_row(id, |r| r.state = state);
+        Ok(())
+    }
+    fn set_spec(&self, id: &str, spec: &JobSpec) -> Result<(), CoordError> {
+        self.with_row(id, |r| r.spec = spec.clone());
+        Ok(())
+    }
+    fn keyed(&self, key: &str) -> Result<Option<(String, Option<String>)>, CoordError> {
+        let rows = self.rows();
+        Ok(rows.iter().find(|r| r.1.as_deref() == Some(key)).map(|r| (r.0.id.clone(), Some(r.2.clone()))))
+    }
+    fn delete_job(&self, id: &str) -> Result<Option<Vec<PathBuf>>, CoordError> {
+        let mut rows = self.rows();
+        let before = rows.len();
+        rows.retain(|r| r.0.id != id);
+        Ok((rows.len() < before).then(Vec::new))
+    }
+    // Not durable: the coordinator stores no partials or checkpoints here.
+    fn save_partial(&self, _: &str, _: u32, _: &[u8]) -> Result<(), CoordError> {
+        Ok(())
+    }
+    fn save_checkpoint(&self, _: &str, _: &[u8], _: &[u32], _: Option<&Image>) -> Result<(), CoordError> {
+        Ok(())
+    }
+    fn checkpoint(&self, _: &str) -> Option<Vec<u8>> {
+        None
+    }
+    fn partials(&self, _: &str) -> Vec<u32> {
+        Vec::new()
+    }
+    fn partial(&self, job: &str, chunk: u32) -> Result<Vec<u8>, String> {
+        Err(format!("no stored partial {chunk} of job {job} in memory"))
+    }
+    fn drop_partial(&self, _: &str, _: u32) {}
+    fn quarantine(&self, _: &str, chunk: Option<u32>) -> String {
+        chunk.map_or("checkpoint".into(), |c| format!("{c}.zst"))
+    }
+    fn save_status(&self, _: &str, _: &JobStatus) -> Result<(), CoordError> {
+        Ok(())
+    }
+    fn final_status(&self, _: &str) -> Option<JobStatus> {
+        None
+    }
+    fn result_path(&self, job: &str) -> PathBuf {
+        PathBuf::from(format!("{job}.exr"))
+    }
+    fn put_file(&self, _: &str, _: &[u8]) -> Result<bool, CoordError> {
+        Err(CoordError::Invalid("this coordinator stores no files".into()))
+    }
+    fn has_file(&self, _: &str) -> bool {
+        false
+    }
+    fn file(&self, _: &str) -> Option<Vec<u8>> {
+        None
+    }
+    fn bundle_manifest(&self, _: &str) -> Option<Vec<u8>> {
+        None
+    }
+    fn load_bundle(
+        &self,
+        _: &Bundle,
+        _: &dyn Fn(&Path) -> Result<Scene, CoordError>,
+    ) -> Result<Scene, CoordError> {
+        Err(CoordError::Invalid("this coordinator stores no files: submit a loaded scene".into()))
+    }
+}
+
+/// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the folder.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir)?;
+    // Unique, so that concurrent writes of one path never share a temporary file.
+    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+    let tmp = dir.join(format!(".{name}.{}.{n}.tmp", std::process::id()));
+    let written = std::fs::File::create(&tmp)
+        .and_then(|mut f| f.write_all(bytes).and_then(|_| f.sync_all()))
+        .and_then(|_| std::fs::rename(&tmp, path));
+    if let Err(e) = written {
+        // A full disk or the like: no temporary file is left behind.
+        std::fs::remove_file(&tmp).ok();
+        return Err(e);
+    }
+    if let Ok(d) = std::fs::File::open(dir) {
+        d.sync_all().ok();
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use furnace_proto::JobSettings;
+
+    fn row(id: &str, created: u64) -> JobRow {
+        let bundle = Bundle { scene: "s.xml".into(), files: Default::default() };
+        JobRow {
+            id: id.into(),
+            spec: JobSpec { bundle, settings: JobSettings::default() },
+            state: JobState::Queued,
+            created,
+        }
+    }
+
+    /// What the coordinator relies on of any store's job rows: order, updates, keys, deletion.
+    fn rows_contract(store: &dyn Store) {
+        store.insert_job(&row("b", 2), Some("key"), "h1").unwrap();
+        store.insert_job(&row("a", 1), None, "h2").unwrap();
+        store.set_state("b", JobState::Running).unwrap();
+        let mut spec = row("b", 2).spec;
+        spec.settings.priority = -7;
+        store.set_spec("b", &spec).unwrap();
+        let jobs: Vec<JobRow> = store.jobs().unwrap().into_iter().map(Result::unwrap).collect();
+        let ids: Vec<&str> = jobs.iter().map(|r| r.id.as_str()).collect();
+        if store.durable() {
+            assert_eq!(ids, ["a", "b"], "oldest first");
+        } else {
+            assert_eq!(ids, ["b", "a"], "in order of submission");
+        }
+        let b = jobs.iter().find(|r| r.id == "b").unwrap();
+        assert_eq!((b.state, b.spec.settings.priority), (JobState::Running, -7));
+        assert_eq!(store.keyed("key").unwrap(), Some(("b".into(), Some("h1".into()))));
+        assert_eq!(store.keyed("other").unwrap(), None);
+        assert!(store.delete_job("b").unwrap().is_some());
+        assert!(store.delete_job("b").unwrap().is_none());
+        assert_eq!(store.keyed("key").unwrap(), None);
+        assert_eq!(store.jobs().unwrap().len(), 1);
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("furnace-store-{name}-{}", std::process::id()));
+        std::fs::remove_dir_all(&d).ok();
+        d
+    }
+
+    #[test]
+    fn both_stores_keep_job_rows_alike() {
+        rows_contract(&MemStore::new());
+        let dir = scratch("rows");
+        rows_contract(&DiskStore::open(&dir).unwrap());
+        // Rows outlive the store that wrote them; the boot counter counts starts.
+        let again = DiskStore::open(&dir).unwrap();
+        assert_eq!(again.jobs().unwrap().len(), 1);
+        assert_eq!((again.boot().unwrap(), again.boot().unwrap()), (1, 2));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A checkpoint drops the partials it holds; a file set aside leaves the partials; a
+    /// final status counts only with its result; temporary files go at the next open.
+    #[test]
+    fn the_disk_store_keeps_a_jobs_files_consistent() {
+        let dir = scratch("files");
+        let s = DiskStore::open(&dir).unwrap();
+        s.insert_job(&row("j", 1), None, "h").unwrap();
+        for c in [3, 1, 2] {
+            s.save_partial("j", c, &[c as u8]).unwrap();
+        }
+        assert_eq!(s.partials("j"), [1, 2, 3]);
+        s.save_checkpoint("j", b"cp", &[1, 3], None).unwrap();
+        assert_eq!((s.partials("j"), s.checkpoint("j")), (vec![2], Some(b"cp".to_vec())));
+        assert_eq!(s.partial("j", 2).unwrap(), [2]);
+        assert_eq!(s.quarantine("j", Some(2)), "2.zst");
+        assert!(s.partials("j").is_empty());
+        assert!(dir.join("jobs/j/quarantine/2.zst").is_file());
+        let status: JobStatus = serde_json::from_str(&format!(
+            r#"{{"id":"j","state":"done","settings":{},"chunks_total":1,"chunks_done":1,
+               "chunks_leased":0,"chunks_pending":0,"samples_done":1,"samples_total":1,
+               "samples_per_second":0,"eta_seconds":null,"workers":[],"errors":[],"plan":""}}"#,
+            serde_json::to_string(&JobSettings::default()).unwrap()
+        ))
+        .unwrap();
+        s.save_status("j", &status).unwrap();
+        assert!(s.final_status("j").is_none(), "no result yet");
+        s.save_checkpoint(
+            "j",
+            b"cp2",
+            &[],
+            Some(&Image { width: 1, height: 1, data: vec![Default::default()] }),
+        )
+        .unwrap();
+        assert_eq!(s.final_status("j"), Some(status));
+        std::fs::write(dir.join("jobs/j/partials/.7.zst.1.1.tmp"), b"half").unwrap();
+        drop(s);
+        DiskStore::open(&dir).unwrap();
+        assert!(!dir.join("jobs/j/partials/.7.zst.1.1.tmp").exists());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
