@@ -416,6 +416,49 @@ fn finished_jobs_release_their_memory_restart_without_their_scene_and_can_be_del
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Issue 14: a cancelled job held its whole accumulation (and was rebuilt, scene included,
+/// at every start). Now cancelling stores the image so far and the final status and releases
+/// the rest; the preview stays; a restart brings it back without its scene.
+#[test]
+fn cancelled_jobs_keep_their_image_so_far_and_release_their_memory() {
+    let dir = scratch("coord-cancel");
+    let data = dir.join("data");
+    let scene = load("small.xml", &[]);
+    let coord = open_coordinator(&data);
+    let settings =
+        JobSettings { spp: 4, tile_size: 8, spp_per_chunk: 2, width: 0, height: 0, ..Default::default() };
+    let job = submit_small(&coord, &scene, settings);
+    assert_eq!(render_leases(&coord, &scene, 5), 5);
+    let in_flight = coord.lock().unwrap().lease("late", Instant::now()).unwrap();
+    let before = coord.lock().unwrap().image(&job).unwrap();
+    furnace_coordinator::state::control(&coord, &job, "cancel").unwrap();
+    let status = {
+        let c = coord.lock().unwrap();
+        assert_eq!(c.held_bytes(&job).unwrap(), 0, "a cancelled job still holds its accumulation");
+        assert!(c.image(&job).unwrap().data == before.data, "the preview is not the image so far");
+        c.status(&job).unwrap()
+    };
+    assert_eq!((status.state, status.chunks_done, status.chunks_leased), (JobState::Cancelled, 5, 0));
+    // The lease in flight is refused, and so is resume; cancelling again changes nothing.
+    let acc = render_chunk(&scene, &in_flight.chunk, in_flight.settings.seed).0;
+    let late = accept_partial(&coord, &job, in_flight.chunk.id, in_flight.epoch, &acc, None);
+    assert!(matches!(late, Err(CoordError::Refused(_))), "{late:?}");
+    let resumed = furnace_coordinator::state::control(&coord, &job, "resume");
+    assert!(matches!(resumed, Err(CoordError::Refused(_))), "{resumed:?}");
+    furnace_coordinator::state::control(&coord, &job, "cancel").unwrap();
+    assert_eq!(coord.lock().unwrap().status(&job).unwrap(), status);
+    drop(coord);
+    std::fs::remove_dir_all(data.join("bundles")).unwrap();
+    std::fs::remove_dir_all(data.join("files")).unwrap();
+    let coord = open_coordinator(&data);
+    let mut c = coord.lock().unwrap();
+    assert_eq!(c.status(&job).unwrap(), status);
+    assert!(c.image(&job).unwrap().data == before.data);
+    assert!(c.lease("w", Instant::now()).is_none());
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// Concurrent submissions of one bundle (a client's retry is enough) each lay it out in a
 /// folder of their own: the stored files stay intact and every submission gets a job.
 #[test]

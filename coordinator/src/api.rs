@@ -480,7 +480,11 @@ async fn result(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult 
 }
 
 async fn control(State(s): State<AppState>, Path((id, action)): Path<(String, String)>) -> ApiResult {
-    s.lock().control(&id, &action)?;
+    let coord = s.coord.clone();
+    let id2 = id.clone();
+    tokio::task::spawn_blocking(move || crate::state::control(&coord, &id2, &action))
+        .await
+        .map_err(|e| CoordError::Internal(e.to_string()))??;
     s.new_work();
     Ok(Json(s.lock().status(&id)?).into_response())
 }

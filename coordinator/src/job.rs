@@ -27,7 +27,8 @@ pub(crate) struct Snapshot {
     /// Those not in the previous checkpoint: their stored partials go once this one is written.
     pub(crate) new: Vec<u32>,
     pub(crate) accum: Accum,
-    /// Every chunk is in: the job's final status, to store with its result.
+    /// The job ends (every chunk is in, or it is cancelled): its final status, to store with
+    /// its result (the image so far, for a cancelled job).
     pub(crate) status: Option<JobStatus>,
 }
 
@@ -238,10 +239,16 @@ impl Job {
 
     /// A copy of the merge for a checkpoint, when one is due (after `CHECKPOINT_EVERY` merges
     /// and `interval`, and when the job is complete) and none is being written.
+    /// A cancelled job's snapshot is its last: it ends the job with the image so far.
     pub(crate) fn snapshot(&mut self, interval: Duration) -> Option<Snapshot> {
-        let finished = self.complete();
+        let end = match self.state {
+            _ if self.final_status.is_some() => return None,
+            JobState::Cancelled => Some(JobState::Cancelled),
+            _ if self.complete() => Some(JobState::Done),
+            _ => None,
+        };
         let due = self.since_checkpoint >= CHECKPOINT_EVERY && self.last_checkpoint.elapsed() >= interval;
-        if self.checkpointing || !(finished || due) {
+        if self.checkpointing || !(end.is_some() || due) {
             return None;
         }
         self.checkpointing = true;
@@ -258,7 +265,7 @@ impl Job {
             skipped,
             new,
             accum: self.accum.clone(),
-            status: finished.then(|| JobStatus { state: JobState::Done, ..self.status() }),
+            status: end.map(|state| JobStatus { state, ..self.status() }),
         })
     }
 

@@ -211,7 +211,8 @@ impl Coordinator {
             let restored = row.map_err(|(id, e)| (id, CoordError::Internal(e))).and_then(|row| {
                 let (id, state) = (row.id.clone(), row.state);
                 // A finished job with its final status stored comes back without its scene.
-                let job = match c.store.final_status(&id).filter(|_| state == JobState::Done) {
+                let ended = matches!(state, JobState::Done | JobState::Cancelled);
+                let job = match c.store.final_status(&id).filter(|_| ended) {
                     Some(st) => Ok(Job::finished(row.id, row.spec, row.created, st)),
                     None => c.restore_job(row),
                 };
@@ -227,8 +228,8 @@ impl Coordinator {
             let id = job.id.clone();
             // Every chunk merged but the end not recorded (a crash or failure while writing
             // the final checkpoint): finish it now.
-            let open = !matches!(state, JobState::Done | JobState::Cancelled);
-            let snap = if open { job.snapshot(c.checkpoint_interval) } else { None };
+            // So is a cancelled job whose last checkpoint was not written.
+            let snap = if state != JobState::Done { job.snapshot(c.checkpoint_interval) } else { None };
             let release = state == JobState::Done && job.final_status.is_none();
             c.jobs.insert(id.clone(), job);
             if release {
@@ -400,8 +401,9 @@ impl Coordinator {
         Ok(())
     }
 
-    /// Cancel, pause or resume.
-    pub fn control(&mut self, id: &str, action: &str) -> Result<(), CoordError> {
+    /// Cancel, pause or resume. A cancelled job's last checkpoint is due: with a durable
+    /// store it is returned, to be written outside the lock (see [`control`]).
+    fn control(&mut self, id: &str, action: &str) -> Result<Option<Snapshot>, CoordError> {
         let state = self.job_mut(id)?.state;
         let next = match (action, state) {
             (_, JobState::Done) => return Err(CoordError::Refused(format!("job {id} is done"))),
@@ -421,7 +423,9 @@ impl Coordinator {
                 *c = ChunkState::Pending;
             }
         }
-        self.set_state(id, next)
+        self.set_state(id, next)?;
+        let store = self.store.durable() && next == JobState::Cancelled;
+        Ok(if store { self.job_mut(id)?.snapshot(Duration::ZERO) } else { None })
     }
 
     pub fn set_priority(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
@@ -720,11 +724,13 @@ impl Coordinator {
         }
         j.checkpoint_failed = None;
         j.checkpointed.extend(&snap.ids);
-        if snap.status.is_some() {
-            if let Err(e) = self.set_state(&snap.job, JobState::Done) {
-                tracing::error!(job = %snap.job, "cannot record the job as done: {e}");
+        if let Some(st) = &snap.status {
+            if st.state == JobState::Done {
+                if let Err(e) = self.set_state(&snap.job, JobState::Done) {
+                    tracing::error!(job = %snap.job, "cannot record the job as done: {e}");
+                }
             }
-            tracing::info!(job = %snap.job, "job done");
+            tracing::info!(job = %snap.job, "job {}", st.state.name());
             // A stored job's result and final status are stored: its memory goes
             // (`furnace render`'s stays).
             if self.store.durable() {
@@ -868,7 +874,7 @@ pub fn retry_checkpoints(coord: &Mutex<Coordinator>) {
         c.jobs
             .values_mut()
             .filter(|j| !j.checkpointing && j.checkpoint_failed.is_some_and(|t| t.elapsed() >= retry))
-            .filter(|j| !matches!(j.state, JobState::Done | JobState::Cancelled))
+            .filter(|j| j.final_status.is_none())
             .filter_map(|j| {
                 j.checkpoint_failed = None;
                 j.snapshot(Duration::ZERO)
@@ -881,6 +887,18 @@ pub fn retry_checkpoints(coord: &Mutex<Coordinator>) {
             tracing::warn!(job = %job, "checkpoint retry failed: {e}");
         }
     }
+}
+
+/// Cancels, pauses or resumes a job. A cancelled job ends like a finished one: its image so
+/// far, its checkpoint and its final status are stored (outside the lock) and its memory
+/// released; its preview stays.
+pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(), CoordError> {
+    let snap = coord.lock().unwrap_or_else(|e| e.into_inner()).control(id, action)?;
+    if let Err(e) = write_checkpoints(coord, snap) {
+        // The job stays cancelled; its memory goes at the next retry or start.
+        tracing::error!(job = %id, "cannot store the cancelled job: {e}");
+    }
+    Ok(())
 }
 
 /// Submits a job, locking the coordinator only to look up the idempotency key and to insert
@@ -1057,7 +1075,7 @@ mod tests {
         let job = submit(&mut c, 0);
         let leases: Vec<_> = std::iter::from_fn(|| c.lease("w", Instant::now())).collect();
         assert_eq!(leases.len(), 4);
-        c.control(&job, "cancel").unwrap();
+        assert!(c.control(&job, "cancel").unwrap().is_none(), "nothing to store in memory");
         assert_eq!(c.status(&job).unwrap().chunks_leased, 0);
         let coord = Mutex::new(c);
         let scene = tiny_scene();

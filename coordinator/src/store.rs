@@ -316,7 +316,7 @@ impl Store for DiskStore {
     }
 
     fn save_partial(&self, job: &str, chunk: u32, bytes: &[u8]) -> Result<(), CoordError> {
-        Ok(write_atomic(&self.partial_path(job, chunk), bytes)?)
+        Ok(write_into(&self.partial_path(job, chunk), bytes)?)
     }
 
     fn save_checkpoint(
@@ -326,7 +326,7 @@ impl Store for DiskStore {
         merged: &[u32],
         result: Option<&Image>,
     ) -> Result<(), CoordError> {
-        write_atomic(&self.job_dir(job).join("checkpoint"), bytes)?;
+        write_into(&self.job_dir(job).join("checkpoint"), bytes)?;
         for &id in merged {
             std::fs::remove_file(self.partial_path(job, id)).ok();
         }
@@ -366,7 +366,9 @@ impl Store for DiskStore {
         };
         let dir = self.job_dir(job).join("quarantine");
         let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let moved = std::fs::create_dir_all(&dir).and_then(|_| std::fs::rename(&file, dir.join(&name)));
+        let moved = std::fs::create_dir(&dir)
+            .or_else(|e| if dir.is_dir() { Ok(()) } else { Err(e) })
+            .and_then(|_| std::fs::rename(&file, dir.join(&name)));
         if let Err(m) = moved {
             tracing::error!(job, "cannot move {} aside: {m}", file.display());
             std::fs::remove_file(&file).ok();
@@ -376,7 +378,7 @@ impl Store for DiskStore {
 
     fn save_status(&self, job: &str, status: &JobStatus) -> Result<(), CoordError> {
         let bytes = serde_json::to_vec(status).map_err(|e| CoordError::Internal(e.to_string()))?;
-        Ok(write_atomic(&self.job_dir(job).join("status.json"), &bytes)?)
+        Ok(write_into(&self.job_dir(job).join("status.json"), &bytes)?)
     }
 
     fn final_status(&self, job: &str) -> Option<JobStatus> {
@@ -561,10 +563,18 @@ impl Store for MemStore {
     }
 }
 
-/// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the folder.
+/// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the folder
+/// (made if need be).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    std::fs::create_dir_all(path.parent().unwrap_or(Path::new(".")))?;
+    write_into(path, bytes)
+}
+
+/// [`write_atomic`] into a folder that must exist: a job's files are written only while its
+/// folder is there, so a write that races the job's deletion fails instead of bringing the
+/// folder back.
+fn write_into(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let dir = path.parent().unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir)?;
     // Unique, so that concurrent writes of one path never share a temporary file.
     static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
