@@ -1,0 +1,274 @@
+//! The farm across machines, as near as one machine comes: the coordinator and two workers each
+//! in a network namespace of their own (their own network stack, addresses and routes), joined
+//! by veth pairs through slow links (tbf rate limits), with random packet loss where `nft` is
+//! installed. One worker is cut off
+//! while its uploads crawl over its slow link (its link goes down: nothing passes, what was
+//! queued is lost), long enough for its leases to expire; then the partition heals and it
+//! works on. The result must be byte-identical to `furnace render`.
+//!
+//! It needs root (`ip netns`); where namespaces cannot be made it says so and passes without
+//! running. The kernel here has no `netem`: where it has, the links also get delay.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{scenes, scratch};
+
+const BIN: &str = env!("CARGO_BIN_EXE_furnace");
+const TOKEN: &str = "netns-test-token";
+const PORT: u16 = 8640;
+
+/// Kills its process when dropped.
+struct Proc(Child);
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.0.kill().ok();
+        self.0.wait().ok();
+    }
+}
+
+/// Runs a shell command (in namespace `ns`, if given); Err with its output when it fails.
+fn run(ns: Option<&str>, cmd: &str) -> Result<(), String> {
+    let out = match ns {
+        Some(ns) => Command::new("ip").args(["netns", "exec", ns, "sh", "-c", cmd]).output(),
+        None => Command::new("sh").args(["-c", cmd]).output(),
+    }
+    .map_err(|e| format!("{cmd}: {e}"))?;
+    if !out.status.success() {
+        return Err(format!("{cmd}: {}", String::from_utf8_lossy(&out.stderr).trim()));
+    }
+    Ok(())
+}
+
+/// Three namespaces (c: the coordinator, w1 and w2: workers) and a link from this one to c;
+/// all removed on drop (removing a namespace removes its ends of the veth pairs).
+struct Net {
+    c: String,
+    w: [String; 2],
+    /// The coordinator's address as seen from this namespace.
+    client_addr: String,
+    loss: bool,
+    delay: bool,
+}
+
+impl Drop for Net {
+    fn drop(&mut self) {
+        for ns in [&self.c, &self.w[0], &self.w[1]] {
+            run(None, &format!("ip netns del {ns}")).ok();
+        }
+    }
+}
+
+impl Net {
+    fn new() -> Result<Net, String> {
+        let pid = std::process::id();
+        let tag = pid % 100_000;
+        let net = Net {
+            c: format!("fzc{tag}"),
+            w: [format!("fzw1-{tag}"), format!("fzw2-{tag}")],
+            // This namespace's link to c gets a subnet of its own per test process.
+            client_addr: format!("10.{}.{}.2", 100 + (pid / 250) % 100, pid % 250),
+            loss: false,
+            delay: false,
+        };
+        for ns in [&net.c, &net.w[0], &net.w[1]] {
+            run(None, &format!("ip netns add {ns}"))?;
+            run(Some(ns), "ip link set lo up")?;
+        }
+        // This namespace <-> c.
+        let host = net.client_addr.trim_end_matches(".2").to_string() + ".1";
+        let (a, b) = (format!("fz{tag}h"), format!("fz{tag}c"));
+        run(None, &format!("ip link add {a} type veth peer name {b} netns {}", net.c))?;
+        run(None, &format!("ip addr add {host}/24 dev {a} && ip link set {a} up"))?;
+        run(Some(&net.c), &format!("ip addr add {}/24 dev {b} && ip link set {b} up", net.client_addr))?;
+        // c <-> each worker: 10.1.k.1 (c) and 10.1.k.2 (the worker), inside the namespaces.
+        for (k, w) in net.w.iter().enumerate() {
+            let (cw, wc) = (format!("fz{tag}c{k}"), format!("fz{tag}w{k}"));
+            run(None, &format!("ip link add {cw} netns {} type veth peer name {wc} netns {w}", net.c))?;
+            run(Some(&net.c), &format!("ip addr add 10.1.{k}.1/24 dev {cw} && ip link set {cw} up"))?;
+            run(Some(w), &format!("ip addr add 10.1.{k}.2/24 dev {wc} && ip link set {wc} up"))?;
+        }
+        Ok(net)
+    }
+
+    /// Slow links: each worker's uploads go out at `rates[k]` (tbf); with netem, 20 ms each way;
+    /// with nft, 2% of each worker's packets are dropped.
+    fn degrade(&mut self, rates: [&str; 2]) -> Result<(), String> {
+        let tag = std::process::id() % 100_000;
+        for (k, w) in self.w.clone().iter().enumerate() {
+            let dev = format!("fz{tag}w{k}");
+            let netem = run(Some(w), &format!("tc qdisc add dev {dev} root handle 1: netem delay 20ms"));
+            self.delay = netem.is_ok();
+            let parent = if self.delay { "parent 1:1 handle 10:" } else { "root" };
+            run(
+                Some(w),
+                &format!("tc qdisc add dev {dev} {parent} tbf rate {} burst 16kb latency 2s", rates[k]),
+            )?;
+            let nft = "nft add table inet fz && \
+                 nft add chain inet fz out '{ type filter hook output priority 0; }' && \
+                 nft add rule inet fz out numgen random mod 100 '<' 2 drop";
+            self.loss = run(Some(w), nft).is_ok();
+        }
+        Ok(())
+    }
+
+    /// Cuts worker `k`'s cable (its link goes down: what its queue holds is dropped and
+    /// nothing passes either way), or plugs it back in.
+    fn partition(&self, k: usize, cut: bool) -> Result<(), String> {
+        let dev = format!("fz{}w{k}", std::process::id() % 100_000);
+        run(Some(&self.w[k]), &format!("ip link set {dev} {}", if cut { "down" } else { "up" }))
+    }
+}
+
+fn http() -> reqwest::blocking::Client {
+    reqwest::blocking::Client::builder().no_proxy().timeout(Duration::from_secs(10)).build().unwrap()
+}
+
+fn get_json(url: &str) -> serde_json::Value {
+    let r = http().get(url).bearer_auth(TOKEN).send().unwrap();
+    assert!(r.status().is_success(), "GET {url}: {}", r.status());
+    r.json().unwrap()
+}
+
+/// Chunks a worker has handed in, as the coordinator counts them.
+fn chunks_done(url: &str, worker: &str) -> u64 {
+    let workers = get_json(&format!("{url}/v1/workers"));
+    let w = workers.as_array().unwrap().iter().find(|w| w["name"] == worker);
+    w.map_or(0, |w| w["chunks_done"].as_u64().unwrap())
+}
+
+fn wait_for(what: &str, limit: Duration, mut done: impl FnMut() -> bool) {
+    let t = Instant::now();
+    while !done() {
+        assert!(t.elapsed() < limit, "{what}: not within {limit:?}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
+    let mut net = match Net::new() {
+        Ok(n) => n,
+        Err(e) => {
+            eprintln!("skipped: network namespaces cannot be made here ({e})");
+            return;
+        }
+    };
+    net.degrade(["64kbit", "1mbit"]).unwrap();
+    eprintln!("links: tbf rate limits; delay (netem): {}; 2% loss (nft): {}", net.delay, net.loss);
+    let dir = scratch("netns");
+    let data = dir.join("data");
+    // The coordinator in c, listening on all its addresses.
+    let mut serve = Command::new("ip")
+        .args(["netns", "exec", &net.c, BIN, "serve", "--data-dir"])
+        .arg(&data)
+        .args(["--bind", &format!("0.0.0.0:{PORT}"), "--lease-seconds", "2", "--token", TOKEN])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(serve.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.starts_with("listening on"), "{line:?}");
+    let _serve = Proc(serve);
+    let url = format!("http://{}:{PORT}", net.client_addr);
+    // Submitted from this namespace, over the link to c.
+    let (spp, scene) = ("4096", scenes().join("small.xml"));
+    let out = Command::new(BIN)
+        .arg("submit")
+        .arg(&scene)
+        .args([
+            "--coordinator",
+            &url,
+            "--token",
+            TOKEN,
+            "--spp",
+            spp,
+            "--tile",
+            "16",
+            "--spp-per-chunk",
+            "256",
+        ])
+        .env("NO_PROXY", "*")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let job = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    let worker = |k: usize| {
+        let log = std::fs::File::create(dir.join(format!("w{k}.log"))).unwrap();
+        Proc(
+            Command::new("ip")
+                .args([
+                    "netns",
+                    "exec",
+                    &net.w[k],
+                    BIN,
+                    "worker",
+                    "--threads",
+                    "1",
+                    "--name",
+                    &format!("w{k}"),
+                ])
+                .args(["--coordinator", &format!("http://10.1.{k}.1:{PORT}"), "--token", TOKEN, "--cache"])
+                .arg(dir.join(format!("cache{k}")))
+                .stdout(Stdio::null())
+                .stderr(log)
+                .spawn()
+                .unwrap(),
+        )
+    };
+    let (_w0, _w1) = (worker(0), worker(1));
+    // The slow worker is cut off once it has handed in two chunks: its next upload is then
+    // under way (uploads are most of its time), and its leases expire during the cut.
+    wait_for("w0 hands in 2 chunks", Duration::from_secs(60), || chunks_done(&url, "w0") >= 2);
+    net.partition(0, true).unwrap();
+    // A merge of an upload whose last bytes got through just before the cut may still be
+    // under way.
+    std::thread::sleep(Duration::from_millis(500));
+    let cut = chunks_done(&url, "w0");
+    std::thread::sleep(Duration::from_secs(6));
+    let status = get_json(&format!("{url}/v1/jobs/{job}"));
+    assert_ne!(status["state"], "done", "the job ended during the cut: make it longer");
+    assert_eq!(chunks_done(&url, "w0"), cut, "a partitioned worker handed in chunks");
+    net.partition(0, false).unwrap();
+    // Healed: the cut-off worker works on.
+    wait_for("w0 hands in chunks after the cut", Duration::from_secs(60), || chunks_done(&url, "w0") > cut);
+    wait_for("the job is done", Duration::from_secs(180), || {
+        get_json(&format!("{url}/v1/jobs/{job}"))["state"] == "done"
+    });
+    let r = http().get(format!("{url}/v1/jobs/{job}/result.exr")).bearer_auth(TOKEN).send().unwrap();
+    assert!(r.status().is_success());
+    let farm = r.bytes().unwrap().to_vec();
+    // What the cut did to the worker in its own words: an upload or heartbeat that hung on
+    // the dead link and was refused or failed once it healed (its lease had gone to w1).
+    let log = std::fs::read_to_string(dir.join("w0.log")).unwrap();
+    let hit: Vec<&str> =
+        log.lines().filter(|l| l.contains("upload") || l.contains("unreachable")).take(3).collect();
+    eprintln!("w0 after the cut: {hit:?}");
+    assert!(!hit.is_empty(), "the cut worker never noticed the cut");
+    let status = get_json(&format!("{url}/v1/jobs/{job}"));
+    eprintln!(
+        "chunks: w0 {}, w1 {}; errors: {}",
+        chunks_done(&url, "w0"),
+        chunks_done(&url, "w1"),
+        status["errors"]
+    );
+    let local = dir.join("local.exr");
+    let st = Command::new(BIN)
+        .arg("render")
+        .arg(&scene)
+        .args(["--spp", spp, "--threads", "2", "-o"])
+        .arg(&local)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(st.success());
+    assert!(farm == std::fs::read(&local).unwrap(), "the farm's result differs from furnace render's");
+    drop(net);
+    std::fs::remove_dir_all(&dir).ok();
+}
