@@ -44,7 +44,13 @@ pub struct AppState {
     /// Time a request may take, its body included ([`REQUEST_TIMEOUT`] unless set); an event
     /// stream's response streams on after it.
     pub request_timeout: Duration,
+    /// Stored files no job uses are removed once this old ([`UNUSED_FILES`] unless set);
+    /// checked at start and every hour.
+    pub unused_files: Duration,
 }
+
+/// How long a stored file no job uses is kept: a client uploads a bundle's files, then submits.
+pub const UNUSED_FILES: Duration = Duration::from_secs(24 * 3600);
 
 /// Scenes loaded at once (each may take a core and much memory while it loads).
 pub const CONCURRENT_LOADS: usize = 2;
@@ -66,6 +72,7 @@ impl AppState {
             max_connections: MAX_CONNECTIONS,
             header_timeout: HEADER_READ_TIMEOUT,
             request_timeout: REQUEST_TIMEOUT,
+            unused_files: UNUSED_FILES,
         }
     }
 
@@ -589,6 +596,14 @@ pub async fn run(
             if n % 4 == 0 {
                 let coord = s.coord.clone();
                 tokio::task::spawn_blocking(move || crate::state::retry_checkpoints(&coord));
+            }
+            if n % 7200 == 0 {
+                let (store, age) = (s.store.clone(), s.unused_files);
+                tokio::task::spawn_blocking(move || {
+                    if let Err(e) = store.collect_garbage(age) {
+                        tracing::warn!("collecting unused files: {e}");
+                    }
+                });
             }
         }
     });

@@ -13,6 +13,7 @@
 //! - `jobs/{id}/partials/{chunk}.zst`, `checkpoint`, `status.json`, `result.exr`,
 //!   `quarantine/`.
 
+use std::collections::HashSet;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -97,6 +98,10 @@ pub trait Store: Send + Sync {
         bundle: &Bundle,
         load: &dyn Fn(&Path) -> Result<Scene, CoordError>,
     ) -> Result<Scene, CoordError>;
+    /// Removes stored files and laid-out bundles that no job uses and that were last stored
+    /// longer than `unused_for` ago (files uploaded for a submission that never came, or that
+    /// failed). Returns how many it removed.
+    fn collect_garbage(&self, unused_for: std::time::Duration) -> Result<usize, CoordError>;
 }
 
 /// Removes files and folders, logging what cannot be removed (a path already gone is fine).
@@ -210,6 +215,24 @@ impl DiskStore {
             made.map_err(|e| CoordError::Invalid(format!("bundle path '{path}' cannot be laid out: {e}")))?;
         }
         Ok(())
+    }
+}
+
+impl DiskStore {
+    /// The bundles and files every stored job uses.
+    fn in_use(&self) -> Result<(HashSet<String>, HashSet<String>), CoordError> {
+        let db = self.db();
+        let mut st = db.prepare("SELECT spec FROM jobs")?;
+        let specs = st.query_map([], |r| r.get::<_, String>(0))?;
+        let (mut bundles, mut files) = (HashSet::new(), HashSet::new());
+        for spec in specs {
+            // A row that cannot be read keeps everything: nothing is removed on a guess.
+            let spec = serde_json::from_str::<JobSpec>(&spec?)
+                .map_err(|e| CoordError::Internal(format!("stored spec unreadable: {e}")))?;
+            bundles.insert(spec.bundle.hash());
+            files.extend(spec.bundle.files.into_values());
+        }
+        Ok((bundles, files))
     }
 }
 
@@ -393,9 +416,11 @@ impl Store for DiskStore {
 
     fn put_file(&self, hash: &str, bytes: &[u8]) -> Result<bool, CoordError> {
         // A stored file is kept only while it still hashes to its name; a damaged one is
-        // replaced.
+        // replaced. Stored again, it counts as new for garbage collection.
         let path = self.file_path(hash);
         if std::fs::read(&path).is_ok_and(|b| blake3::hash(&b).to_hex().as_str() == hash) {
+            let now = std::time::SystemTime::now();
+            std::fs::File::options().append(true).open(&path).and_then(|f| f.set_modified(now)).ok();
             return Ok(false);
         }
         write_atomic(&path, bytes)?;
@@ -451,6 +476,34 @@ impl Store for DiskStore {
             write_atomic(&manifest, json(b)?.as_bytes())?;
         }
         Ok(scene)
+    }
+
+    fn collect_garbage(&self, unused_for: std::time::Duration) -> Result<usize, CoordError> {
+        let (bundles, files) = self.in_use()?;
+        let old = |e: &std::fs::DirEntry| {
+            let age = e.metadata().ok().and_then(|m| m.modified().ok()).and_then(|t| t.elapsed().ok());
+            age.is_some_and(|a| a >= unused_for)
+        };
+        let mut gone = Vec::new();
+        for e in std::fs::read_dir(self.data.join("files"))?.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if !files.contains(&name) && old(&e) {
+                gone.push(e.path());
+            }
+        }
+        for e in std::fs::read_dir(self.data.join("bundles"))?.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let hash = name.strip_suffix(".json").unwrap_or(&name);
+            // Temporary layouts belong to submissions under way (a crash's go at start).
+            if !name.ends_with(".tmp") && !bundles.contains(hash) && old(&e) {
+                gone.push(e.path());
+            }
+        }
+        remove_paths(&gone);
+        if !gone.is_empty() {
+            tracing::info!("removed {} stored files and bundles that no job uses", gone.len());
+        }
+        Ok(gone.len())
     }
 }
 
@@ -561,6 +614,9 @@ impl Store for MemStore {
     ) -> Result<Scene, CoordError> {
         Err(CoordError::Invalid("this coordinator stores no files: submit a loaded scene".into()))
     }
+    fn collect_garbage(&self, _: std::time::Duration) -> Result<usize, CoordError> {
+        Ok(0)
+    }
 }
 
 /// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the folder
@@ -640,6 +696,41 @@ mod tests {
         d
     }
 
+    fn s_status() -> JobStatus {
+        serde_json::from_str(&format!(
+            r#"{{"id":"j","state":"done","settings":{},"chunks_total":1,"chunks_done":1,
+               "chunks_leased":0,"chunks_pending":0,"samples_done":1,"samples_total":1,
+               "samples_per_second":0,"eta_seconds":null,"workers":[],"errors":[],"plan":""}}"#,
+            serde_json::to_string(&JobSettings::default()).unwrap()
+        ))
+        .unwrap()
+    }
+
+    /// Issue 14: files uploaded for a submission that never came (or failed) stayed forever.
+    #[test]
+    fn files_no_job_uses_are_collected_once_old_enough() {
+        let dir = scratch("gc");
+        let s = DiskStore::open(&dir).unwrap();
+        let hash = |b: &[u8]| blake3::hash(b).to_hex().to_string();
+        let (used, unused) = (hash(b"scene"), hash(b"orphan"));
+        s.put_file(&used, b"scene").unwrap();
+        s.put_file(&unused, b"orphan").unwrap();
+        std::fs::write(dir.join("files/not-a-hash"), b"?").unwrap();
+        std::fs::create_dir_all(dir.join("bundles/abandoned")).unwrap();
+        let mut job = row("j", 1);
+        job.spec.bundle.files.insert("s.xml".into(), used.clone());
+        s.insert_job(&job, None, "h").unwrap();
+        let hour = std::time::Duration::from_secs(3600);
+        assert_eq!(s.collect_garbage(hour).unwrap(), 0, "recent files are kept");
+        assert_eq!(s.collect_garbage(std::time::Duration::ZERO).unwrap(), 3);
+        assert!(s.has_file(&used) && !s.has_file(&unused));
+        assert!(!dir.join("files/not-a-hash").exists() && !dir.join("bundles/abandoned").exists());
+        // Once its job is deleted, its files go too.
+        remove_paths(&s.delete_job("j").unwrap().unwrap());
+        assert!(!s.has_file(&used));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
     #[test]
     fn both_stores_keep_job_rows_alike() {
         rows_contract(&MemStore::new());
@@ -669,13 +760,7 @@ mod tests {
         assert_eq!(s.quarantine("j", Some(2)), "2.zst");
         assert!(s.partials("j").is_empty());
         assert!(dir.join("jobs/j/quarantine/2.zst").is_file());
-        let status: JobStatus = serde_json::from_str(&format!(
-            r#"{{"id":"j","state":"done","settings":{},"chunks_total":1,"chunks_done":1,
-               "chunks_leased":0,"chunks_pending":0,"samples_done":1,"samples_total":1,
-               "samples_per_second":0,"eta_seconds":null,"workers":[],"errors":[],"plan":""}}"#,
-            serde_json::to_string(&JobSettings::default()).unwrap()
-        ))
-        .unwrap();
+        let status = s_status();
         s.save_status("j", &status).unwrap();
         assert!(s.final_status("j").is_none(), "no result yet");
         s.save_checkpoint(
@@ -690,6 +775,14 @@ mod tests {
         drop(s);
         DiskStore::open(&dir).unwrap();
         assert!(!dir.join("jobs/j/partials/.7.zst.1.1.tmp").exists());
+        // A write racing the job's deletion fails; it does not bring the folder back.
+        let s = DiskStore::open(&dir).unwrap();
+        let gone = s.delete_job("j").unwrap().unwrap();
+        remove_paths(&gone);
+        assert!(s.save_partial("j", 4, b"late").is_err());
+        assert!(s.save_checkpoint("j", b"late", &[], None).is_err());
+        assert!(s.save_status("j", &s_status()).is_err());
+        assert!(!dir.join("jobs/j").exists());
         std::fs::remove_dir_all(&dir).ok();
     }
 }
