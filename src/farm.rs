@@ -44,6 +44,10 @@ pub struct ServeArgs {
     /// came); checked at start and every hour.
     #[arg(long, default_value_t = furnace_coordinator::api::UNUSED_FILES.as_secs_f64() / 3600.0)]
     pub unused_file_hours: f64,
+    /// Megabytes of request bodies received at once, all requests together; a request waits
+    /// for its share (up to half the request time limit, then 503). No body may be larger.
+    #[arg(long, default_value_t = (furnace_coordinator::api::BODY_BUDGET >> 20) as u64)]
+    pub body_budget_mb: u64,
 }
 
 #[derive(Args)]
@@ -183,7 +187,8 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
     // Local workers take the scene the coordinator loaded to check the job.
     coord.keep_scenes = a.local_workers > 0;
-    let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone());
+    let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone())
+        .with_body_budget((a.body_budget_mb.min(1 << 30) << 20) as usize);
     state.max_connections = a.max_connections.clamp(1, u32::MAX as usize);
     state.header_timeout = Duration::from_secs_f64(a.header_timeout.clamp(0.1, 3600.0));
     state.request_timeout = Duration::from_secs_f64(a.request_timeout.clamp(0.1, 86400.0));

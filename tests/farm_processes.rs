@@ -227,6 +227,62 @@ fn idle_half_requests_time_out_and_the_coordinator_stays_reachable() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Issue 14: request bodies up to 256 MiB were buffered whole, with no limit on all of them
+/// together (8 uploads: 2.4 GB). Now bodies share an in-flight budget (`--body-budget-mb`):
+/// a request waits for its share, then gets 503 with Retry-After; none may be larger than
+/// the budget; file uploads stream to disk while they are hashed, and a bad one leaves
+/// nothing behind.
+#[test]
+fn request_bodies_share_a_budget_and_files_stream_to_disk() {
+    let dir = scratch("farmbudget");
+    let data = dir.join("data");
+    let limits = ["--body-budget-mb", "1", "--request-timeout", "2"];
+    let (_c, url) = coordinator(&data, &limits, 0);
+    let addr = url.strip_prefix("http://").unwrap().to_string();
+    let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(10)).build().unwrap();
+    let put =
+        |bytes: Vec<u8>, hash: &str| http.put(format!("{url}/v1/files/{hash}")).body(bytes).send().unwrap();
+    let file = |n: usize, k: u8| {
+        let b: Vec<u8> = (0..n).map(|i| (i as u8).wrapping_mul(31) ^ k).collect();
+        let h = blake3::hash(&b).to_hex().to_string();
+        (b, h)
+    };
+    // Larger than the budget: refused before a byte of it is read.
+    let (big, big_hash) = file(1_100_000, 1);
+    let r = put(big, &big_hash);
+    assert_eq!(r.status().as_u16(), 413);
+    let e: serde_json::Value = r.json().unwrap();
+    assert!(e["error"].as_str().unwrap().contains("over the limit of 1048576 bytes"), "{e}");
+    // A slow client holds 900 KB of the budget: the next 300 KB upload waits its turn, for
+    // half the request time limit, then is told to come back.
+    let slow = std::net::TcpStream::connect(&addr).unwrap();
+    let head =
+        format!("PUT /v1/files/{} HTTP/1.1\r\nHost: x\r\nContent-Length: 900000\r\n\r\nabc", "0".repeat(64));
+    std::io::Write::write_all(&mut &slow, head.as_bytes()).unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    let (mid, mid_hash) = file(300_000, 2);
+    let t = Instant::now();
+    let r = put(mid.clone(), &mid_hash);
+    assert_eq!(r.status().as_u16(), 503, "{:?}", r.text());
+    assert_eq!(r.headers()["retry-after"], "1");
+    assert!(t.elapsed() >= Duration::from_millis(800), "answered after {:?}", t.elapsed());
+    // Once the slow one times out, the budget is free again; the file streams to disk.
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(put(mid.clone(), &mid_hash).status().as_u16(), 201);
+    assert_eq!(get(&format!("{url}/v1/files/{mid_hash}")), (200, mid.clone()));
+    assert_eq!(put(mid.clone(), &mid_hash).status().as_u16(), 200, "stored already");
+    // A body that does not hash to its name is refused and leaves no file, temporary or not.
+    let r = put(mid, &"1".repeat(64));
+    assert_eq!(r.status().as_u16(), 400);
+    let names: Vec<String> = std::fs::read_dir(data.join("files"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, [mid_hash], "what the refused upload left");
+    drop(slow);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `serve --local-workers`: workers inside the coordinator's process (the in-process link,
 /// with the scene the coordinator loaded) give the same bytes.
 #[test]

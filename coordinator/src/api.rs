@@ -44,10 +44,22 @@ pub struct AppState {
     /// Time a request may take, its body included ([`REQUEST_TIMEOUT`] unless set); an event
     /// stream's response streams on after it.
     pub request_timeout: Duration,
+    /// Bytes of request bodies being received at once, all requests together
+    /// ([`BODY_BUDGET`] unless set, with [`AppState::with_body_budget`]). A request waits for
+    /// its share (its declared length) before its body is read: at most half the request time
+    /// limit, then it is answered 503 with `Retry-After`.
+    body_budget: Arc<tokio::sync::Semaphore>,
+    /// The budget's size, and so the largest body accepted.
+    max_body: usize,
     /// Stored files no job uses are removed once this old ([`UNUSED_FILES`] unless set);
     /// checked at start and every hour.
     pub unused_files: Duration,
 }
+
+/// Request bodies received at once, in bytes, by default.
+pub const BODY_BUDGET: usize = 1 << 30;
+/// The budget's unit: permits are KiB.
+const BUDGET_UNIT: usize = 1024;
 
 /// How long a stored file no job uses is kept: a client uploads a bundle's files, then submits.
 pub const UNUSED_FILES: Duration = Duration::from_secs(24 * 3600);
@@ -73,7 +85,18 @@ impl AppState {
             header_timeout: HEADER_READ_TIMEOUT,
             request_timeout: REQUEST_TIMEOUT,
             unused_files: UNUSED_FILES,
+            body_budget: Arc::new(tokio::sync::Semaphore::new(BODY_BUDGET / BUDGET_UNIT)),
+            max_body: MAX_BODY,
         }
+    }
+
+    /// Sets the in-flight budget for request bodies (bytes, at least 64 KiB); no body may be
+    /// larger than the budget or [`MAX_BODY`].
+    pub fn with_body_budget(mut self, bytes: usize) -> AppState {
+        let bytes = bytes.clamp(64 * BUDGET_UNIT, u32::MAX as usize * BUDGET_UNIT);
+        self.body_budget = Arc::new(tokio::sync::Semaphore::new(bytes / BUDGET_UNIT));
+        self.max_body = MAX_BODY.min(bytes);
+        self
     }
 
     /// Tells waiting lease requests to look again.
@@ -97,8 +120,15 @@ impl IntoResponse for CoordError {
             CoordError::Unknown(_) => StatusCode::NOT_FOUND,
             CoordError::Refused(_) => StatusCode::CONFLICT,
             CoordError::Unrenderable(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            CoordError::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            CoordError::Busy(_) => StatusCode::SERVICE_UNAVAILABLE,
             CoordError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         };
+        if status == StatusCode::SERVICE_UNAVAILABLE {
+            let mut r = error(status, self.to_string());
+            r.headers_mut().insert(header::RETRY_AFTER, header::HeaderValue::from_static("1"));
+            return r;
+        }
         if status.is_server_error() {
             // The details (paths on this host among them) go to the log, not to the client.
             tracing::error!("{self}");
@@ -199,9 +229,10 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/chunks/{chunk}/fail", post(fail))
         .route("/v1/jobs/{id}/chunks/{chunk}/result", put(upload))
         .fallback(|| async { error(StatusCode::NOT_FOUND, "no such endpoint (see /v1)") })
+        .layer(middleware::from_fn_with_state(state.clone(), body_budget))
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(middleware::from_fn_with_state(state.clone(), time_limit))
-        .layer(DefaultBodyLimit::max(MAX_BODY))
+        .layer(DefaultBodyLimit::max(state.max_body))
         .layer(middleware::map_response(json_errors))
         .with_state(state)
         .merge(open)
@@ -363,18 +394,108 @@ async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
     next.run(req).await
 }
 
-async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: Bytes) -> ApiResult {
+/// Holds a request until its body fits in the in-flight budget (its declared length; a body
+/// of unknown length counts as the largest allowed); refuses one larger than the limit.
+async fn body_budget(State(s): State<AppState>, req: Request, next: Next) -> Response {
+    let declared = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    let len = match declared {
+        Some(n) => n,
+        None if req.method() == axum::http::Method::GET || req.method() == axum::http::Method::HEAD => 0,
+        None => s.max_body as u64,
+    };
+    if len > s.max_body as u64 {
+        return CoordError::TooLarge(format!(
+            "the body ({len} bytes) is over the limit of {} bytes",
+            s.max_body
+        ))
+        .into_response();
+    }
+    let units = (len as usize).div_ceil(BUDGET_UNIT) as u32;
+    if units == 0 {
+        return next.run(req).await;
+    }
+    let wait = s.request_timeout / 2;
+    let permit = match tokio::time::timeout(wait, s.body_budget.clone().acquire_many_owned(units)).await {
+        Ok(Ok(p)) => p,
+        _ => {
+            metrics::counter!("furnace_requests_over_budget_total").increment(1);
+            return CoordError::Busy(format!(
+                "the coordinator is receiving {} bytes of requests at once, its limit; try again",
+                s.max_body
+            ))
+            .into_response();
+        }
+    };
+    let resp = next.run(req).await;
+    drop(permit);
+    resp
+}
+
+/// A request body as a blocking reader, fed by the server's task: a file upload streams to
+/// disk on a blocking thread, never whole in memory.
+struct BodyReader {
+    rx: tokio::sync::mpsc::Receiver<Bytes>,
+    cur: Bytes,
+}
+
+impl std::io::Read for BodyReader {
+    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
+        while self.cur.is_empty() {
+            match self.rx.blocking_recv() {
+                Some(b) => self.cur = b,
+                // The feeder stopped: at the end of the body, or on an error it reports itself.
+                None => return Ok(0),
+            }
+        }
+        let n = out.len().min(self.cur.len());
+        out[..n].copy_from_slice(&self.cur.split_to(n));
+        Ok(n)
+    }
+}
+
+async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: axum::body::Body) -> ApiResult {
     if !is_hash(&hash) {
         return Err(CoordError::Invalid(format!("'{hash}' is not a BLAKE3 hex hash")));
     }
-    let actual = blake3::hash(&body).to_hex().to_string();
-    if actual != hash {
-        return Err(CoordError::Invalid(format!("body hashes to {actual}, not {hash}")));
-    }
     let store = s.store.clone();
-    let stored = tokio::task::spawn_blocking(move || store.put_file(&hash, &body))
-        .await
-        .map_err(|e| CoordError::Internal(e.to_string()))??;
+    let (tx, rx) = tokio::sync::mpsc::channel::<Bytes>(8);
+    let writer = tokio::task::spawn_blocking(move || {
+        store.put_file_from(&hash, &mut BodyReader { rx, cur: Bytes::new() })
+    });
+    // Fed chunk by chunk; a body that breaks off or runs over the limit is not stored (the
+    // writer sees its end early, and the hash check refuses what it got).
+    let mut stream = body.into_data_stream();
+    let mut got = 0usize;
+    let mut failed = None;
+    while let Some(chunk) = futures_util::StreamExt::next(&mut stream).await {
+        let chunk = match chunk {
+            Ok(c) => c,
+            Err(e) => {
+                failed = Some(CoordError::Invalid(format!("the body broke off: {e}")));
+                break;
+            }
+        };
+        got += chunk.len();
+        if got > s.max_body {
+            failed =
+                Some(CoordError::TooLarge(format!("the body is over the limit of {} bytes", s.max_body)));
+            break;
+        }
+        if tx.send(chunk).await.is_err() {
+            break; // the writer is done: a good copy was stored already, or it failed
+        }
+    }
+    drop(tx);
+    if let Some(e) = failed {
+        // The writer, fed a part, refuses it; its result does not matter.
+        writer.await.ok();
+        return Err(e);
+    }
+    let stored = writer.await.map_err(|e| CoordError::Internal(e.to_string()))??;
     let code = if stored { StatusCode::CREATED } else { StatusCode::OK };
     Ok((code, Json(Stored { stored })).into_response())
 }

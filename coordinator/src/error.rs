@@ -15,6 +15,13 @@ pub enum CoordError {
     /// The job cannot be rendered: its scene fails to load, or its settings exceed a limit.
     #[error("{0}")]
     Unrenderable(String),
+    /// The request is larger than a limit allows.
+    #[error("{0}")]
+    TooLarge(String),
+    /// The coordinator cannot take the request now (its in-flight budget is spent): try
+    /// again shortly.
+    #[error("{0}")]
+    Busy(String),
     /// Storage failed (disk, database) or the like: worth trying again.
     #[error("internal error: {0}")]
     Internal(String),

@@ -86,8 +86,14 @@ pub trait Store: Send + Sync {
     fn result_path(&self, job: &str) -> PathBuf;
 
     // Content-addressed files and bundles.
-    /// Stores a file under its hash (checked by the caller); false when it was there already.
-    fn put_file(&self, hash: &str, bytes: &[u8]) -> Result<bool, CoordError>;
+    /// Stores a file under its hash, reading it from `body` and hashing it as it is written
+    /// (nothing is held in memory); refused, and nothing kept, when it does not hash to `hash`.
+    /// Returns false when a good copy was stored already (then `body` is not read).
+    fn put_file_from(&self, hash: &str, body: &mut dyn std::io::Read) -> Result<bool, CoordError>;
+    /// [`Store::put_file_from`] for bytes in memory.
+    fn put_file(&self, hash: &str, mut bytes: &[u8]) -> Result<bool, CoordError> {
+        self.put_file_from(hash, &mut bytes)
+    }
     fn has_file(&self, hash: &str) -> bool;
     fn file(&self, hash: &str) -> Option<Vec<u8>>;
     fn bundle_manifest(&self, hash: &str) -> Option<Vec<u8>>;
@@ -414,16 +420,50 @@ impl Store for DiskStore {
         self.job_dir(job).join("result.exr")
     }
 
-    fn put_file(&self, hash: &str, bytes: &[u8]) -> Result<bool, CoordError> {
+    fn put_file_from(&self, hash: &str, body: &mut dyn std::io::Read) -> Result<bool, CoordError> {
         // A stored file is kept only while it still hashes to its name; a damaged one is
         // replaced. Stored again, it counts as new for garbage collection.
         let path = self.file_path(hash);
-        if std::fs::read(&path).is_ok_and(|b| blake3::hash(&b).to_hex().as_str() == hash) {
+        let good = std::fs::File::open(&path)
+            .and_then(|f| blake3::Hasher::new().update_reader(f).map(|h| h.finalize()))
+            .is_ok_and(|h| h.to_hex().as_str() == hash);
+        if good {
             let now = std::time::SystemTime::now();
             std::fs::File::options().append(true).open(&path).and_then(|f| f.set_modified(now)).ok();
             return Ok(false);
         }
-        write_atomic(&path, bytes)?;
+        static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let tmp = self.data.join("files").join(format!(".{hash}.{}.{n}.tmp", std::process::id()));
+        let mut hasher = blake3::Hasher::new();
+        let written = std::fs::File::create(&tmp).and_then(|f| {
+            let mut out = std::io::BufWriter::new(f);
+            let mut buf = vec![0u8; 1 << 16];
+            loop {
+                let k = body.read(&mut buf)?;
+                if k == 0 {
+                    break;
+                }
+                hasher.update(&buf[..k]);
+                out.write_all(&buf[..k])?;
+            }
+            out.into_inner().map_err(|e| e.into_error())?.sync_all()
+        });
+        let actual = hasher.finalize().to_hex();
+        let checked = match written {
+            Err(e) => Err(CoordError::from(e)),
+            Ok(()) if actual.as_str() != hash => {
+                Err(CoordError::Invalid(format!("body hashes to {actual}, not {hash}")))
+            }
+            Ok(()) => std::fs::rename(&tmp, &path).map_err(CoordError::from),
+        };
+        if let Err(e) = checked {
+            std::fs::remove_file(&tmp).ok();
+            return Err(e);
+        }
+        if let Ok(d) = std::fs::File::open(self.data.join("files")) {
+            d.sync_all().ok();
+        }
         Ok(true)
     }
 
@@ -595,7 +635,7 @@ impl Store for MemStore {
     fn result_path(&self, job: &str) -> PathBuf {
         PathBuf::from(format!("{job}.exr"))
     }
-    fn put_file(&self, _: &str, _: &[u8]) -> Result<bool, CoordError> {
+    fn put_file_from(&self, _: &str, _: &mut dyn std::io::Read) -> Result<bool, CoordError> {
         Err(CoordError::Invalid("this coordinator stores no files".into()))
     }
     fn has_file(&self, _: &str) -> bool {
@@ -713,6 +753,9 @@ mod tests {
         let s = DiskStore::open(&dir).unwrap();
         let hash = |b: &[u8]| blake3::hash(b).to_hex().to_string();
         let (used, unused) = (hash(b"scene"), hash(b"orphan"));
+        let e = s.put_file(&used, b"not the scene").unwrap_err();
+        assert!(matches!(&e, CoordError::Invalid(m) if m.contains("hashes to")), "{e:?}");
+        assert_eq!(std::fs::read_dir(dir.join("files")).unwrap().count(), 0, "a refused file was kept");
         s.put_file(&used, b"scene").unwrap();
         s.put_file(&unused, b"orphan").unwrap();
         std::fs::write(dir.join("files/not-a-hash"), b"?").unwrap();
