@@ -2,12 +2,13 @@
 //! serves to many small simulated workers, and how many MB/s of partials it stores and merges.
 //!
 //!   cargo bench --bench farm_load [-- --workers 1,4,16,64] [--data DIR]
-//!   cargo bench --bench farm_load -- --soak SECONDS [--workers 200]
+//!   cargo bench --bench farm_load -- --soak SECONDS [--workers 200] [--keep]
 //!
-//! `--soak`: one coordinator, job after job (cbox, 16x16-pixel chunks x 1 sample x 8 passes,
-//! 2048 chunks) driven by that many simulated workers for that long; every finished job's image
-//! must equal the merge of its partials (nothing lost, nothing merged twice), and the process's
-//! resident memory is printed after each job (finished jobs release theirs).
+//! `--soak`: one coordinator (`furnace serve` in a process of its own), job after job (cbox,
+//! 16x16-pixel chunks x 1 sample x 8 passes, 2048 chunks) driven by that many simulated
+//! workers for that long; every finished job's result.exr must equal the merge of its partials
+//! (nothing lost, nothing merged twice); then it is deleted (`--keep`: kept), and the
+//! coordinator process's resident memory is printed.
 //!
 //! The simulated workers render nothing while timed: every chunk's partial is rendered and
 //! encoded beforehand, so the numbers are the coordinator's (HTTP, decode, checks, fsync of
@@ -158,14 +159,71 @@ fn run_case(
     (trips as f64 / secs, bytes as f64 / secs / 1e6, raw as f64 / secs / 1e6)
 }
 
-/// Resident memory of this process, in MB (Linux).
-fn rss_mb() -> f64 {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+/// Resident memory of process `pid`, in MB (Linux).
+fn rss_mb(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
     let kb = status.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.split_whitespace().next());
     kb.and_then(|k| k.parse::<f64>().ok()).unwrap_or(0.0) / 1024.0
 }
 
-fn soak(base: &Path, scene_path: &Path, scene: &Scene, settings: &JobSettings, workers: usize, secs: f64) {
+/// `furnace serve` in a process of its own, so that its resident memory is the coordinator's
+/// alone (not the simulated workers' threads and clients). Killed on drop.
+struct ServeProcess(std::process::Child);
+
+impl Drop for ServeProcess {
+    fn drop(&mut self) {
+        self.0.kill().ok();
+        self.0.wait().ok();
+    }
+}
+
+fn serve_process(data: &Path) -> (ServeProcess, String) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_furnace"))
+        .args(["serve", "--bind", "127.0.0.1:0", "--data-dir"])
+        .arg(data)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("start furnace serve");
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().expect("stdout")).read_line(&mut line).expect("address");
+    let url = line.trim().strip_prefix("listening on ").expect("listening on ...").to_string();
+    (ServeProcess(child), url)
+}
+
+/// Uploads the scene's files (those not stored yet) and submits the job, as `furnace submit`.
+fn submit_http(
+    http: &reqwest::blocking::Client,
+    url: &str,
+    path: &Path,
+    scene: &Scene,
+    s: &JobSettings,
+) -> String {
+    let (bundle, files) = Bundle::of_scene(path, scene).expect("bundle");
+    for (rel, file) in files {
+        let h = &bundle.files[&rel];
+        if http.head(format!("{url}/v1/files/{h}")).send().expect("HEAD").status() != 200 {
+            let r = http.put(format!("{url}/v1/files/{h}")).body(std::fs::read(file).expect("read")).send();
+            assert!(r.expect("PUT").status().is_success());
+        }
+    }
+    let r = http.post(format!("{url}/v1/jobs")).json(&JobSpec { bundle, settings: s.clone() }).send();
+    r.expect("POST").json::<furnace_proto::Submitted>().expect("job id").id
+}
+
+/// Job after job against one coordinator process, each driven to the end by `workers`
+/// simulated workers, checked (image, sample count), and deleted unless `keep`; the
+/// coordinator's resident memory after each.
+fn soak(
+    base: &Path,
+    scene_path: &Path,
+    scene: &Scene,
+    settings: &JobSettings,
+    workers: usize,
+    secs: f64,
+    keep: bool,
+) {
     let (partials, _) = prerender(scene, settings);
     let mut expected = furnace_core::Accum::new(0, 0, settings.width, settings.height);
     for p in partials.iter() {
@@ -174,31 +232,56 @@ fn soak(base: &Path, scene_path: &Path, scene: &Scene, settings: &JobSettings, w
     let expected = expected.develop();
     let data = base.join("soak");
     std::fs::remove_dir_all(&data).ok();
-    let server = serve(&data);
+    let (server, url) = serve_process(&data);
+    let pid = server.0.id();
+    let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(60)).build().expect("client");
     let t = Instant::now();
     let (mut jobs, mut trips, mut rss) = (0u64, 0u64, Vec::new());
-    println!("soak: {workers} workers, {} chunks a job, {secs} s", partials.len());
+    let what = if keep { "kept" } else { "deleted once checked" };
+    println!("soak: {workers} workers, {} chunks a job, {secs} s, finished jobs {what}", partials.len());
     println!("{:>6} {:>10} {:>14} {:>10}", "job", "seconds", "round trips/s", "RSS MB");
+    let result = base.join("soak-result.exr");
     while t.elapsed().as_secs_f64() < secs {
-        let job = submit(&server, scene_path, scene, settings);
-        let (n, _, s) = drive(&server.url, workers, &partials);
-        let c = server.coord.lock().expect("lock");
-        let st = c.status(&job).expect("status");
+        let job = submit_http(&http, &url, scene_path, scene, settings);
+        let (n, _, s) = drive(&url, workers, &partials);
+        // The last merge's checkpoint and result are written after its upload is answered.
+        let st = loop {
+            let st: furnace_proto::JobStatus =
+                http.get(format!("{url}/v1/jobs/{job}")).send().expect("status").json().expect("status JSON");
+            if st.state == JobState::Done || t.elapsed().as_secs_f64() > secs + 120.0 {
+                break st;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
         assert_eq!(st.state, JobState::Done, "job {jobs} not done");
         assert_eq!(st.samples_done, st.samples_total, "job {jobs}: samples lost or counted twice");
-        assert!(c.image(&job).expect("image").data == expected.data, "job {jobs}: image differs");
-        drop(c);
+        let bytes = http.get(format!("{url}/v1/jobs/{job}/result.exr")).send().expect("result").bytes();
+        std::fs::write(&result, bytes.expect("result bytes")).expect("write result");
+        let image = furnace_core::Image::read_exr(&result).expect("read result");
+        assert!(image.data == expected.data, "job {jobs}: image differs");
+        if !keep {
+            let r = http.delete(format!("{url}/v1/jobs/{job}")).send().expect("DELETE");
+            assert_eq!(r.status(), 204, "job {jobs}: not deleted");
+        }
         jobs += 1;
         trips += n;
-        rss.push(rss_mb());
-        println!("{jobs:>6} {:>10.1} {:>14.0} {:>10.1}", t.elapsed().as_secs_f64(), n as f64 / s, rss_mb());
+        rss.push(rss_mb(pid));
+        println!(
+            "{jobs:>6} {:>10.1} {:>14.0} {:>10.1}",
+            t.elapsed().as_secs_f64(),
+            n as f64 / s,
+            rss_mb(pid)
+        );
     }
     let max = rss.iter().cloned().fold(0.0, f64::max);
+    let half = rss.len() / 2;
     println!(
-        "soak: {jobs} jobs, {trips} round trips in {:.0} s ({:.0}/s), every image exact; RSS after the first job {:.1} MB, after the last {:.1} MB, most {max:.1} MB",
+        "soak: {jobs} jobs, {trips} round trips in {:.0} s ({:.0}/s), every image exact; coordinator RSS after job 1 {:.1} MB, after job {} {:.1} MB, after the last {:.1} MB, most {max:.1} MB",
         t.elapsed().as_secs_f64(),
         trips as f64 / t.elapsed().as_secs_f64(),
         rss[0],
+        half + 1,
+        rss[half],
         rss[rss.len() - 1]
     );
     drop(server);
@@ -216,6 +299,7 @@ fn main() {
     let mut workers = vec![1usize, 4, 16, 64];
     let mut base = std::env::temp_dir();
     let mut soak_secs: Option<f64> = None;
+    let mut keep = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -229,6 +313,7 @@ fn main() {
             }
             "--data" => base = PathBuf::from(args.next().expect("--data DIR")),
             "--soak" => soak_secs = Some(args.next().and_then(|v| v.parse().ok()).expect("--soak SECONDS")),
+            "--keep" => keep = true,
             _ => {} // cargo bench passes --bench
         }
     }
@@ -248,7 +333,7 @@ fn main() {
     };
     if let Some(secs) = soak_secs {
         let n = if workers == [1, 4, 16, 64] { 200 } else { workers[0] };
-        soak(&base, &scene_path, &scene, &settings(16, 8), n, secs);
+        soak(&base, &scene_path, &scene, &settings(16, 8), n, secs, keep);
         std::fs::remove_dir_all(&base).ok();
         return;
     }

@@ -40,8 +40,8 @@ pub struct ServeArgs {
     /// Seconds a request may take, its body included.
     #[arg(long, default_value_t = furnace_coordinator::api::REQUEST_TIMEOUT.as_secs_f64())]
     pub request_timeout: f64,
-    /// Hours a stored file that no job uses is kept (uploaded for a submission that never
-    /// came); checked at start and every hour.
+    /// Hours (at least 1) a stored file that no job uses is kept (uploaded for a submission
+    /// that never came); checked at start and every hour.
     #[arg(long, default_value_t = furnace_coordinator::api::UNUSED_FILES.as_secs_f64() / 3600.0)]
     pub unused_file_hours: f64,
     /// Megabytes of request bodies received at once, all requests together; a request waits
@@ -192,7 +192,10 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     state.max_connections = a.max_connections.clamp(1, u32::MAX as usize);
     state.header_timeout = Duration::from_secs_f64(a.header_timeout.clamp(0.1, 3600.0));
     state.request_timeout = Duration::from_secs_f64(a.request_timeout.clamp(0.1, 86400.0));
-    state.unused_files = Duration::from_secs_f64(a.unused_file_hours.clamp(0.0, 1e6) * 3600.0);
+    if a.unused_file_hours < 1.0 {
+        bail!("--unused-file-hours must be at least 1 (a submission under way needs its files)");
+    }
+    state.unused_files = Duration::from_secs_f64(a.unused_file_hours.min(1e6) * 3600.0);
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(a.bind)

@@ -455,6 +455,9 @@ fn cancelled_jobs_keep_their_image_so_far_and_release_their_memory() {
     assert_eq!(c.status(&job).unwrap(), status);
     assert!(c.image(&job).unwrap().data == before.data);
     assert!(c.lease("w", Instant::now()).is_none());
+    // Restored as cancelled, not done: no result to download, counted as cancelled.
+    assert!(matches!(c.result_path(&job), Err(CoordError::Refused(_))));
+    assert_eq!(c.stats(Instant::now()).jobs["cancelled"], 1);
     drop(c);
     std::fs::remove_dir_all(&dir).ok();
 }

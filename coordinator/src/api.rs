@@ -63,6 +63,8 @@ const BUDGET_UNIT: usize = 1024;
 
 /// How long a stored file no job uses is kept: a client uploads a bundle's files, then submits.
 pub const UNUSED_FILES: Duration = Duration::from_secs(24 * 3600);
+/// The least of it: a submission under way touches its files, and must find them after.
+pub const UNUSED_FILES_AT_LEAST: Duration = Duration::from_secs(3600);
 
 /// Scenes loaded at once (each may take a core and much memory while it loads).
 pub const CONCURRENT_LOADS: usize = 2;
@@ -502,6 +504,8 @@ async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: axu
 
 async fn head_file(State(s): State<AppState>, Path(hash): Path<String>) -> StatusCode {
     if is_hash(&hash) && s.store.has_file(&hash) {
+        // Asked for before a submission: kept from garbage collection for a while longer.
+        s.store.touch_file(&hash);
         StatusCode::OK
     } else {
         StatusCode::NOT_FOUND
@@ -521,7 +525,14 @@ async fn get_file(State(s): State<AppState>, Path(hash): Path<String>) -> ApiRes
 }
 
 async fn get_bundle(State(s): State<AppState>, Path(hash): Path<String>) -> ApiResult {
-    let bytes = s.lock().bundle_manifest(&hash)?;
+    if !is_hash(&hash) {
+        return Err(CoordError::Invalid(format!("'{hash}' is not a bundle hash")));
+    }
+    let store = s.store.clone();
+    let bytes = tokio::task::spawn_blocking(move || store.bundle_manifest(&hash).ok_or(hash))
+        .await
+        .map_err(|e| CoordError::Internal(e.to_string()))?
+        .map_err(|hash| CoordError::Unknown(format!("no bundle {hash}")))?;
     Ok(([(header::CONTENT_TYPE, "application/json")], bytes).into_response())
 }
 
@@ -718,7 +729,7 @@ pub async fn run(
                 let coord = s.coord.clone();
                 tokio::task::spawn_blocking(move || crate::state::retry_checkpoints(&coord));
             }
-            if n % 7200 == 0 {
+            if n % 7200 == 0 && s.unused_files >= UNUSED_FILES_AT_LEAST {
                 let (store, age) = (s.store.clone(), s.unused_files);
                 tokio::task::spawn_blocking(move || {
                     if let Err(e) = store.collect_garbage(age) {

@@ -137,9 +137,11 @@ impl Job {
         Ok(())
     }
 
-    /// A finished job as a restart restores it: its final status, nothing else.
+    /// An ended job (done or cancelled) as a restart restores it: its final status, nothing
+    /// else.
     pub(crate) fn finished(id: String, spec: JobSpec, created: u64, status: JobStatus) -> Job {
-        let mut job = Job::new(id, spec, JobState::Done, created, Vec::new(), Accum::new(0, 0, 0, 0));
+        let state = status.state;
+        let mut job = Job::new(id, spec, state, created, Vec::new(), Accum::new(0, 0, 0, 0));
         job.render_plan = status.plan.clone();
         job.errors = status.errors.clone();
         job.samples_done = status.samples_done;

@@ -211,8 +211,8 @@ impl Coordinator {
             let restored = row.map_err(|(id, e)| (id, CoordError::Internal(e))).and_then(|row| {
                 let (id, state) = (row.id.clone(), row.state);
                 // A finished job with its final status stored comes back without its scene.
-                let ended = matches!(state, JobState::Done | JobState::Cancelled);
-                let job = match c.store.final_status(&id).filter(|_| ended) {
+                // (Its stored status and its row agree on how it ended.)
+                let job = match c.store.final_status(&id).filter(|st| st.state == state) {
                     Some(st) => Ok(Job::finished(row.id, row.spec, row.created, st)),
                     None => c.restore_job(row),
                 };
@@ -404,9 +404,16 @@ impl Coordinator {
     /// Cancel, pause or resume. A cancelled job's last checkpoint is due: with a durable
     /// store it is returned, to be written outside the lock (see [`control`]).
     fn control(&mut self, id: &str, action: &str) -> Result<Option<Snapshot>, CoordError> {
-        let state = self.job_mut(id)?.state;
+        let (state, complete) = {
+            let j = self.job_mut(id)?;
+            (j.state, j.final_status.is_none() && j.complete())
+        };
         let next = match (action, state) {
             (_, JobState::Done) => return Err(CoordError::Refused(format!("job {id} is done"))),
+            // Its final checkpoint is being written: it ends done, whatever is asked now.
+            (_, s) if complete && s != JobState::Cancelled => {
+                return Err(CoordError::Refused(format!("job {id} is finishing: every chunk is merged")))
+            }
             ("cancel", _) => JobState::Cancelled,
             (_, JobState::Cancelled) => return Err(CoordError::Refused(format!("job {id} is cancelled"))),
             ("pause", _) => JobState::Paused,
@@ -510,13 +517,13 @@ impl Coordinator {
 
     fn leased(&mut self, job: &str, chunk: u32, epoch: u64) -> Result<&mut Job, CoordError> {
         let j = self.job_mut(job)?;
+        if j.state == JobState::Cancelled {
+            return Err(CoordError::Refused(format!("job {job} is cancelled: its leases are revoked")));
+        }
         if j.final_status.is_some() {
             return Err(CoordError::Refused(format!(
                 "chunk {chunk} of job {job} is already merged: the job is done"
             )));
-        }
-        if j.state == JobState::Cancelled {
-            return Err(CoordError::Refused(format!("job {job} is cancelled: its leases are revoked")));
         }
         let c = j
             .chunks
@@ -948,8 +955,10 @@ pub fn check_upload(
 /// worker was still rendering, or a retried upload whose first attempt got through).
 fn count_duplicate(coord: &Mutex<Coordinator>, job: &str, chunk: u32) {
     let c = coord.lock().unwrap_or_else(|e| e.into_inner());
-    let merged =
-        |j: &Job| j.final_status.is_some() || matches!(j.chunks.get(chunk as usize), Some(ChunkState::Done));
+    let merged = |j: &Job| {
+        j.state != JobState::Cancelled
+            && (j.final_status.is_some() || matches!(j.chunks.get(chunk as usize), Some(ChunkState::Done)))
+    };
     if c.jobs.get(job).is_some_and(merged) {
         metrics::counter!("furnace_duplicate_uploads_total").increment(1);
     }

@@ -95,6 +95,8 @@ pub trait Store: Send + Sync {
         self.put_file_from(hash, &mut bytes)
     }
     fn has_file(&self, hash: &str) -> bool;
+    /// Marks a stored file as wanted now (a client checked it is there before submitting).
+    fn touch_file(&self, hash: &str);
     fn file(&self, hash: &str) -> Option<Vec<u8>>;
     fn bundle_manifest(&self, hash: &str) -> Option<Vec<u8>>;
     /// Lays the bundle's files out under their paths (once per bundle) and loads its scene from
@@ -269,13 +271,19 @@ impl Store for DiskStore {
                     .map_err(|e| (id.clone(), format!("stored spec unreadable: {e}")))?;
                 let state = serde_json::from_value::<JobState>(serde_json::Value::String(state))
                     .map_err(|e| (id.clone(), format!("stored state unreadable: {e}")))?;
+                // A row whose folder is missing (made by an earlier version after the row, and
+                // lost) gets it back: its files can be written again.
+                std::fs::create_dir_all(self.job_dir(&id).join("partials")).ok();
                 Ok(JobRow { id, spec, state, created: created.max(0) as u64 })
             })
             .collect())
     }
 
     fn insert_job(&self, row: &JobRow, key: Option<&str>, request: &str) -> Result<(), CoordError> {
-        self.db().execute(
+        // The folder first: a row always has one (a job's files are written only into it).
+        let dir = self.job_dir(&row.id);
+        std::fs::create_dir_all(dir.join("partials"))?;
+        let inserted = self.db().execute(
             "INSERT INTO jobs (id, spec, state, idempotency_key, created, request_hash)
              VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
             rusqlite::params![
@@ -286,8 +294,11 @@ impl Store for DiskStore {
                 row.created as i64,
                 request
             ],
-        )?;
-        std::fs::create_dir_all(self.job_dir(&row.id).join("partials"))?;
+        );
+        if let Err(e) = inserted {
+            std::fs::remove_dir_all(&dir).ok();
+            return Err(e.into());
+        }
         Ok(())
     }
 
@@ -360,8 +371,10 @@ impl Store for DiskStore {
             std::fs::remove_file(self.partial_path(job, id)).ok();
         }
         if let Some(img) = result {
-            // Written atomically (temporary file, rename) before the job is marked done.
-            img.write_exr(&self.result_path(job)).map_err(|e| CoordError::Internal(e.to_string()))?;
+            // Written atomically and durably (temporary file, fsync, rename) before the final
+            // status, which counts only beside a result.
+            let bytes = img.exr_bytes().map_err(|e| CoordError::Internal(format!("result: {e}")))?;
+            write_into(&self.result_path(job), &bytes)?;
         }
         Ok(())
     }
@@ -428,8 +441,7 @@ impl Store for DiskStore {
             .and_then(|f| blake3::Hasher::new().update_reader(f).map(|h| h.finalize()))
             .is_ok_and(|h| h.to_hex().as_str() == hash);
         if good {
-            let now = std::time::SystemTime::now();
-            std::fs::File::options().append(true).open(&path).and_then(|f| f.set_modified(now)).ok();
+            touch(&path);
             return Ok(false);
         }
         static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
@@ -471,6 +483,10 @@ impl Store for DiskStore {
         self.file_path(hash).is_file()
     }
 
+    fn touch_file(&self, hash: &str) {
+        touch(&self.file_path(hash));
+    }
+
     fn file(&self, hash: &str) -> Option<Vec<u8>> {
         std::fs::read(self.file_path(hash)).ok()
     }
@@ -492,8 +508,15 @@ impl Store for DiskStore {
                 missing.join(", ")
             )));
         }
+        // Fresh again for garbage collection, which leaves a submission's files alone (it takes
+        // only what was unused for at least an hour).
+        for h in b.files.values() {
+            touch(&self.file_path(h));
+        }
         let hash = b.hash();
         let dir = self.bundle_dir(&hash);
+        touch(&dir);
+        touch(&self.manifest_path(&hash));
         let scene = if dir.is_dir() {
             // Laid out by an earlier submission.
             load(&dir)?
@@ -527,7 +550,16 @@ impl Store for DiskStore {
         let mut gone = Vec::new();
         for e in std::fs::read_dir(self.data.join("files"))?.flatten() {
             let name = e.file_name().to_string_lossy().into_owned();
+            // Temporary files are uploads under way (a crash's are removed by their age).
             if !files.contains(&name) && old(&e) {
+                gone.push(e.path());
+            }
+        }
+        // Job folders without a row: a deletion whose removal failed (a write raced it).
+        let rows: HashSet<String> =
+            self.db().prepare("SELECT id FROM jobs")?.query_map([], |r| r.get(0))?.flatten().collect();
+        for e in std::fs::read_dir(self.data.join("jobs"))?.flatten() {
+            if !rows.contains(&*e.file_name().to_string_lossy()) && old(&e) {
                 gone.push(e.path());
             }
         }
@@ -641,6 +673,7 @@ impl Store for MemStore {
     fn has_file(&self, _: &str) -> bool {
         false
     }
+    fn touch_file(&self, _: &str) {}
     fn file(&self, _: &str) -> Option<Vec<u8>> {
         None
     }
@@ -657,6 +690,17 @@ impl Store for MemStore {
     fn collect_garbage(&self, _: std::time::Duration) -> Result<usize, CoordError> {
         Ok(0)
     }
+}
+
+/// Sets a file's or folder's modification time to now (if it exists).
+fn touch(path: &Path) {
+    let now = std::time::SystemTime::now();
+    let f = if path.is_dir() {
+        std::fs::File::open(path)
+    } else {
+        std::fs::File::options().append(true).open(path)
+    };
+    f.and_then(|f| f.set_modified(now)).ok();
 }
 
 /// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the folder
@@ -760,12 +804,14 @@ mod tests {
         s.put_file(&unused, b"orphan").unwrap();
         std::fs::write(dir.join("files/not-a-hash"), b"?").unwrap();
         std::fs::create_dir_all(dir.join("bundles/abandoned")).unwrap();
+        std::fs::create_dir_all(dir.join("jobs/orphan/partials")).unwrap();
         let mut job = row("j", 1);
         job.spec.bundle.files.insert("s.xml".into(), used.clone());
         s.insert_job(&job, None, "h").unwrap();
         let hour = std::time::Duration::from_secs(3600);
         assert_eq!(s.collect_garbage(hour).unwrap(), 0, "recent files are kept");
-        assert_eq!(s.collect_garbage(std::time::Duration::ZERO).unwrap(), 3);
+        assert_eq!(s.collect_garbage(std::time::Duration::ZERO).unwrap(), 4);
+        assert!(!dir.join("jobs/orphan").exists() && dir.join("jobs/j").is_dir());
         assert!(s.has_file(&used) && !s.has_file(&unused));
         assert!(!dir.join("files/not-a-hash").exists() && !dir.join("bundles/abandoned").exists());
         // Once its job is deleted, its files go too.

@@ -29,6 +29,22 @@ impl Image {
         self.data[(y * self.width + x) as usize]
     }
 
+    /// The image as an RGB f32 EXR file's bytes. Never spawns threads.
+    pub fn exr_bytes(&self) -> Result<Vec<u8>, exr::error::Error> {
+        use exr::prelude::*;
+        let w = self.width as usize;
+        let channels = SpecificChannels::rgb(|pos: Vec2<usize>| {
+            let c = self.data[pos.y() * w + pos.x()];
+            (c.x, c.y, c.z)
+        });
+        let mut out = std::io::Cursor::new(Vec::new());
+        Image::from_channels((w, self.height as usize), channels)
+            .write()
+            .non_parallel()
+            .to_buffered(&mut out)?;
+        Ok(out.into_inner())
+    }
+
     /// Writes RGB f32 EXR, atomically (temporary file, then rename). Never spawns threads.
     pub fn write_exr(&self, path: &Path) -> Result<(), ImageIoError> {
         use exr::prelude::*;
