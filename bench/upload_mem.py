@@ -1,3 +1,6 @@
+# The coordinator's memory under concurrent file uploads: starts `furnace serve` (BINARY), PUTs
+# N bodies of SIZE MiB at once (wrong hashes: each body is read whole, then refused), prints
+# the peak resident memory (VmHWM).   python3 bench/upload_mem.py BINARY N SIZE
 import sys, subprocess, threading, time, http.client, shutil
 binary, n, size = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]) << 20
 data = '/tmp/upmem-data'
