@@ -314,7 +314,7 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
         let (coord, done) = (coord.clone(), done.clone());
         std::thread::spawn(move || {
             let t = Instant::now();
-            let r = furnace_coordinator::state::submit(&coord, spec, None);
+            let r = furnace_coordinator::state::submit(&coord, spec, None, None);
             done.store(true, std::sync::atomic::Ordering::SeqCst);
             (r, t.elapsed())
         })
@@ -346,6 +346,7 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
         &coord,
         JobSpec { bundle: bad, settings: JobSettings::default() },
         None,
+        None,
     )
     .unwrap_err();
     // It names the file as the bundle does, not where this host keeps it.
@@ -355,6 +356,21 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
         "{e:?}"
     );
     assert_eq!(bundles(), before, "a failed submission left files behind");
+    // A load that ends after its request's time is up (its client answered 408) submits
+    // nothing: no job appears after its client was told the submission failed.
+    let scene = load("small.xml", &[]);
+    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
+    for (rel, path) in files {
+        coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
+    }
+    let spec =
+        JobSpec { bundle, settings: JobSettings { spp: 1, width: 0, height: 0, ..JobSettings::default() } };
+    let jobs = coord.lock().unwrap().job_ids().len();
+    let late = furnace_coordinator::state::submit(&coord, spec.clone(), Some("k"), Some(Instant::now()));
+    assert!(matches!(&late, Err(CoordError::TooLarge(m)) if m.contains("nothing was submitted")), "{late:?}");
+    assert_eq!(coord.lock().unwrap().job_ids().len(), jobs);
+    let far = Instant::now() + std::time::Duration::from_secs(60);
+    assert!(furnace_coordinator::state::submit(&coord, spec, Some("k"), Some(far)).unwrap().1);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -478,7 +494,7 @@ fn concurrent_submissions_of_one_bundle_leave_its_files_intact() {
         .map(|_| {
             let (coord, spec) =
                 (coord.clone(), JobSpec { bundle: bundle.clone(), settings: settings.clone() });
-            std::thread::spawn(move || furnace_coordinator::state::submit(&coord, spec, None))
+            std::thread::spawn(move || furnace_coordinator::state::submit(&coord, spec, None, None))
         })
         .collect();
     for t in threads {

@@ -365,9 +365,14 @@ async fn readyz(State(s): State<AppState>) -> Response {
     }
 }
 
+/// When a request's time is up (it has been answered 408 by then).
+#[derive(Clone, Copy)]
+struct Deadline(Instant);
+
 /// A request (body included) that takes longer than the limit is answered 408: a client
 /// trickling its body cannot hold a connection slot.
-async fn time_limit(State(s): State<AppState>, req: Request, next: Next) -> Response {
+async fn time_limit(State(s): State<AppState>, mut req: Request, next: Next) -> Response {
+    req.extensions_mut().insert(Deadline(Instant::now() + s.request_timeout));
     match tokio::time::timeout(s.request_timeout, next.run(req)).await {
         Ok(r) => r,
         Err(_) => error(
@@ -536,7 +541,12 @@ async fn get_bundle(State(s): State<AppState>, Path(hash): Path<String>) -> ApiR
     Ok(([(header::CONTENT_TYPE, "application/json")], bytes).into_response())
 }
 
-async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) -> ApiResult {
+async fn post_job(
+    State(s): State<AppState>,
+    axum::Extension(started): axum::Extension<Deadline>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> ApiResult {
     let spec: JobSpec = json_body(&body, "job spec")?;
     let key = match headers.get("idempotency-key") {
         None => None,
@@ -547,11 +557,14 @@ async fn post_job(State(s): State<AppState>, headers: HeaderMap, body: Bytes) ->
         }
     };
     let coord = s.coord.clone();
+    // The client is answered 408 when the request's time is up; a load still running then
+    // submits nothing when it ends (no job appears after its client was told it failed).
+    let deadline = started.0;
     // The turn goes with the load: a client that hangs up does not free it early.
     let turn = s.loads.clone().acquire_owned().await.map_err(|e| CoordError::Internal(e.to_string()))?;
     let (id, created) = tokio::task::spawn_blocking(move || {
         let _turn = turn;
-        crate::state::submit(&coord, spec, key.as_deref())
+        crate::state::submit(&coord, spec, key.as_deref(), Some(deadline))
     })
     .await
     .map_err(|e| CoordError::Internal(e.to_string()))??;

@@ -910,12 +910,15 @@ pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(),
 
 /// Submits a job, locking the coordinator only to look up the idempotency key and to insert
 /// the job: the bundle is laid out and the scene loaded, validated and planned without the
-/// lock, so leases, uploads and status go on meanwhile.
+/// lock, so leases, uploads and status go on meanwhile. A load that ends after `deadline` (the
+/// request's time limit, when its client has been answered already) submits nothing.
 pub fn submit(
     coord: &Mutex<Coordinator>,
     spec: JobSpec,
     key: Option<&str>,
+    deadline: Option<Instant>,
 ) -> Result<(String, bool), CoordError> {
+    let started = Instant::now();
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
     let request = request_hash(&spec);
     let loader = {
@@ -926,6 +929,12 @@ pub fn submit(
         c.loader()
     };
     let job = loader.submitted(spec, key)?;
+    if deadline.is_some_and(|d| Instant::now() > d) {
+        return Err(CoordError::TooLarge(format!(
+            "the scene took {:.1} s to load, longer than the request may take; nothing was submitted",
+            started.elapsed().as_secs_f64()
+        )));
+    }
     let mut c = lock();
     // A submission with the same key that finished meanwhile wins.
     match c.idempotent(key, &request)? {
