@@ -37,8 +37,8 @@ fn render_leases(coord: &Mutex<Coordinator>, scene: &Scene, limit: usize) -> usi
     while n < limit {
         let lease = coord.lock().unwrap().lease("w", Instant::now());
         let Some(l) = lease else { break };
-        let acc = render_chunk(scene, &l.chunk, l.settings.seed).0;
-        accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, None).unwrap();
+        let (acc, stats) = render_chunk(scene, &l.chunk, l.settings.seed);
+        accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, Some(&(&stats).into()), None).unwrap();
         n += 1;
     }
     n
@@ -69,9 +69,9 @@ fn chunks_merged_in_any_order_with_duplicates_equal_the_local_render() {
     assert_eq!(leases.len(), chunk_plan(&settings).len());
     for (k, l) in leases.iter().enumerate().rev() {
         let acc = render_chunk(&scene, &l.chunk, l.settings.seed).0;
-        accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None).unwrap();
+        accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None, None).unwrap();
         if k % 3 == 0 {
-            let again = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None);
+            let again = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None, None);
             assert!(matches!(again, Err(CoordError::Refused(_))), "{again:?}");
         }
     }
@@ -457,7 +457,7 @@ fn cancelled_jobs_keep_their_image_so_far_and_release_their_memory() {
     assert_eq!((status.state, status.chunks_done, status.chunks_leased), (JobState::Cancelled, 5, 0));
     // The lease in flight is refused, and so is resume; cancelling again changes nothing.
     let acc = render_chunk(&scene, &in_flight.chunk, in_flight.settings.seed).0;
-    let late = accept_partial(&coord, &job, in_flight.chunk.id, in_flight.epoch, &acc, None);
+    let late = accept_partial(&coord, &job, in_flight.chunk.id, in_flight.epoch, &acc, None, None);
     assert!(matches!(late, Err(CoordError::Refused(_))), "{late:?}");
     let resumed = furnace_coordinator::state::control(&coord, &job, "resume");
     assert!(matches!(resumed, Err(CoordError::Refused(_))), "{resumed:?}");
@@ -475,6 +475,47 @@ fn cancelled_jobs_keep_their_image_so_far_and_release_their_memory() {
     assert!(matches!(c.result_path(&job), Err(CoordError::Refused(_))));
     assert_eq!(c.stats(Instant::now()).jobs["cancelled"], 1);
     drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Issue 14: render statistics stayed with the worker (the HTTP upload dropped them). Each
+/// partial now carries its chunk's, the job's status sums them exactly, and a restart keeps
+/// them: from the stored partials, and from the checkpoint once the job is done.
+#[test]
+fn render_statistics_travel_with_partials_and_survive_restarts() {
+    let dir = scratch("coord-stats");
+    let data = dir.join("data");
+    let scene = load("small.xml", &[]);
+    let settings = JobSettings {
+        spp: 4,
+        tile_size: 8,
+        spp_per_chunk: 2,
+        seed: 3,
+        width: 0,
+        height: 0,
+        ..Default::default()
+    };
+    let mut expected = furnace_proto::RenderStats::default();
+    let full =
+        JobSettings { width: scene.film.crop_width, height: scene.film.crop_height, ..settings.clone() };
+    for c in chunk_plan(&full) {
+        expected.merge(&(&render_chunk(&scene, &c, full.seed).1).into());
+    }
+    assert!(expected.rays > 0 && expected.samples == 48 * 40 * 4);
+    let coord = open_coordinator(&data);
+    let job = submit_small(&coord, &scene, settings);
+    render_leases(&coord, &scene, 7);
+    let mid = coord.lock().unwrap().status(&job).unwrap().render_stats;
+    assert!(mid.samples > 0 && mid.samples < expected.samples, "{mid:?}");
+    drop(coord);
+    let coord = open_coordinator(&data);
+    assert_eq!(coord.lock().unwrap().status(&job).unwrap().render_stats, mid, "lost at restart");
+    render_leases(&coord, &scene, usize::MAX);
+    assert_eq!(coord.lock().unwrap().status(&job).unwrap().render_stats, expected);
+    drop(coord);
+    let coord = open_coordinator(&data);
+    assert_eq!(coord.lock().unwrap().status(&job).unwrap().render_stats, expected);
+    drop(coord);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -561,7 +602,7 @@ fn a_failed_final_checkpoint_is_tried_again() {
     for _ in 0..n {
         let l = coord.lock().unwrap().lease("w", Instant::now()).unwrap();
         let acc = render_chunk(&scene, &l.chunk, l.settings.seed).0;
-        let _ = accept_partial(&coord, &l.job, l.chunk.id, l.epoch, &acc, None);
+        let _ = accept_partial(&coord, &l.job, l.chunk.id, l.epoch, &acc, None, None);
     }
     let s = coord.lock().unwrap().status(&job).unwrap();
     assert_eq!((s.state, s.chunks_done), (JobState::Running, s.chunks_total));

@@ -124,6 +124,16 @@ fn two_workers_render_the_same_bytes_as_furnace_render() {
     let s = status(&url, &job);
     assert_eq!(s["chunks_done"], s["chunks_total"]);
     assert_eq!(s["samples_done"], s["samples_total"]);
+    // The workers' render statistics came with their partials: their sum is exactly what
+    // rendering every chunk here counts.
+    let scene = common::load("small.xml", &[]);
+    let settings: furnace_proto::JobSettings = serde_json::from_value(s["settings"].clone()).unwrap();
+    let mut expected = furnace_proto::RenderStats::default();
+    for c in furnace_proto::chunk_plan(&settings) {
+        expected.merge(&(&furnace_worker::render_chunk(&scene, &c, settings.seed).1).into());
+    }
+    let got: furnace_proto::RenderStats = serde_json::from_value(s["render_stats"].clone()).unwrap();
+    assert_eq!(got, expected);
     drop((_w1, _w2, _c));
     std::fs::remove_dir_all(&dir).ok();
 }

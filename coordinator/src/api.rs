@@ -12,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use furnace_proto::{
-    decode_partial, is_hash, ApiError, FailureReport, Heartbeat, HeartbeatReply, JobSpec, LeaseRequest,
+    decode_chunk, is_hash, ApiError, FailureReport, Heartbeat, HeartbeatReply, JobSpec, LeaseRequest,
     Priority, Ready, Stored, Submitted, MAX_LEASE_WAIT_MS,
 };
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
@@ -710,8 +710,8 @@ async fn upload(
     tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
         // The lease first; then decode, outside the lock: it is the slow part.
         let max = crate::state::check_upload(&coord, &id, chunk, epoch)?;
-        let acc = decode_partial(&body, max).map_err(|e| CoordError::Invalid(e.to_string()))?;
-        crate::state::accept_partial(&coord, &id, chunk, epoch, &acc, Some(&body))
+        let (acc, stats) = decode_chunk(&body, max).map_err(|e| CoordError::Invalid(e.to_string()))?;
+        crate::state::accept_partial(&coord, &id, chunk, epoch, &acc, stats.as_ref(), Some(&body))
     })
     .await
     .map_err(|e| CoordError::Internal(e.to_string()))??;

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use std::sync::Arc;
 
 use furnace_core::{Accum, Scene};
-use furnace_proto::{ChunkSpec, JobSpec, JobState, JobStatus};
+use furnace_proto::{ChunkSpec, JobSpec, JobState, JobStatus, RenderStats};
 
 /// Merges between checkpoints (at least; see `Coordinator::checkpoint_interval`).
 const CHECKPOINT_EVERY: usize = 256;
@@ -27,6 +27,8 @@ pub(crate) struct Snapshot {
     /// Those not in the previous checkpoint: their stored partials go once this one is written.
     pub(crate) new: Vec<u32>,
     pub(crate) accum: Accum,
+    /// The render statistics of the chunks in `accum`.
+    pub(crate) stats: RenderStats,
     /// The job ends (every chunk is in, or it is cancelled): its final status, to store with
     /// its result (the image so far, for a cancelled job).
     pub(crate) status: Option<JobStatus>,
@@ -86,6 +88,8 @@ pub(crate) struct Job {
     /// (time, samples) of recent merges, for the rate.
     pub(crate) recent: VecDeque<(Instant, u64)>,
     pub(crate) samples_done: u64,
+    /// What rendering the merged chunks took (their partials' statistics, summed).
+    pub(crate) stats: RenderStats,
     pub(crate) created: u64,
     /// A finished job keeps only its final status (and its result on disk): the plan, the
     /// chunk states, the accumulation and the scene are released.
@@ -185,6 +189,7 @@ impl Job {
             workers: BTreeMap::new(),
             recent: VecDeque::new(),
             samples_done: 0,
+            stats: RenderStats::default(),
             created,
             final_status: None,
         }
@@ -267,6 +272,7 @@ impl Job {
             skipped,
             new,
             accum: self.accum.clone(),
+            stats: self.stats.clone(),
             status: end.map(|state| JobStatus { state, ..self.status() }),
         })
     }
@@ -394,6 +400,7 @@ impl Job {
             eta_seconds: (rate > 0.0).then(|| left as f64 / rate),
             estimated_rel_mse: Some(j.estimated_rel_mse()).filter(|e| e.is_finite()),
             dropped_samples: j.accum.dropped,
+            render_stats: j.stats.clone(),
             workers: j.workers.keys().cloned().collect(),
             errors: j.errors.clone(),
             plan: j.render_plan.clone(),

@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 
 use furnace_core::{Accum, Scene};
 use furnace_proto::{
-    chunk_plan, decode_partial, encode_partial, Bundle, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus,
-    Lease,
+    chunk_plan, decode_chunk, encode_chunk, Bundle, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus,
+    Lease, RenderStats,
 };
 
 pub use crate::error::CoordError;
@@ -279,7 +279,7 @@ impl Coordinator {
         if let Some(bytes) = self.store.checkpoint(&id) {
             let n = job.plan.len();
             let limit = furnace_proto::partial_size_limit(job.accum.width, job.accum.height);
-            let checked = decode_checkpoint(&bytes, limit).and_then(|(ids, skipped, acc)| {
+            let checked = decode_checkpoint(&bytes, limit).and_then(|(ids, skipped, acc, stats)| {
                 let a = &job.accum;
                 if (acc.x0, acc.y0, acc.width, acc.height) != (a.x0, a.y0, a.width, a.height) {
                     return Err(format!(
@@ -293,12 +293,13 @@ impl Coordinator {
                 let merged: HashSet<u32> = ids.iter().copied().collect();
                 match skipped.iter().find(|c| merged.contains(c)) {
                     Some(c) => Err(format!("it has chunk {c} both merged and skipped")),
-                    None => Ok((ids, skipped, acc)),
+                    None => Ok((ids, skipped, acc, stats)),
                 }
             });
             match checked {
-                Ok((ids, skipped, acc)) => {
+                Ok((ids, skipped, acc, stats)) => {
                     job.accum = acc;
+                    job.stats = stats.unwrap_or_default();
                     job.merged = ids.iter().copied().collect();
                     job.skipped = skipped.into_iter().collect();
                     job.checkpointed = job.merged.clone();
@@ -317,10 +318,15 @@ impl Coordinator {
             let acc = match self
                 .store
                 .partial(&id, chunk)
-                .and_then(|bytes| decode_partial(&bytes, self.max_partial).map_err(|e| e.to_string()))
-                .and_then(|acc| job.fits(chunk, &acc).map(|_| acc))
+                .and_then(|bytes| decode_chunk(&bytes, self.max_partial).map_err(|e| e.to_string()))
+                .and_then(|(acc, stats)| job.fits(chunk, &acc).map(|_| (acc, stats)))
             {
-                Ok(acc) => acc,
+                Ok((acc, stats)) => {
+                    if let Some(s) = stats {
+                        job.stats.merge(&s);
+                    }
+                    acc
+                }
                 Err(e) => {
                     let name = self.store.quarantine(&id, Some(chunk));
                     job.quarantined(&name, &e);
@@ -597,6 +603,7 @@ impl Coordinator {
         chunk: u32,
         epoch: u64,
         acc: &Accum,
+        stats: Option<&RenderStats>,
         now: Instant,
     ) -> Result<Option<Snapshot>, CoordError> {
         let t0 = Instant::now();
@@ -610,6 +617,9 @@ impl Coordinator {
             tracing::warn!(job, chunk, worker = %worker, "chunk dropped samples: {}", acc.dropped);
         }
         j.accum.merge(acc);
+        if let Some(s) = stats {
+            j.stats.merge(s);
+        }
         j.merged.insert(chunk);
         j.chunks[chunk as usize] = ChunkState::Done;
         j.follow_up(chunk, acc);
@@ -840,6 +850,7 @@ pub fn accept_partial(
     chunk: u32,
     epoch: u64,
     acc: &Accum,
+    stats: Option<&RenderStats>,
     encoded: Option<&[u8]>,
 ) -> Result<(), CoordError> {
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
@@ -851,10 +862,10 @@ pub fn accept_partial(
         // the same bytes as the one merged, and a restart merges each chunk at most once.
         match encoded {
             Some(bytes) => store.save_partial(job, chunk, bytes)?,
-            None => store.save_partial(job, chunk, &encode_partial(acc))?,
+            None => store.save_partial(job, chunk, &encode_chunk(acc, stats))?,
         }
     }
-    let merged = lock().merge_partial(job, chunk, epoch, acc, Instant::now());
+    let merged = lock().merge_partial(job, chunk, epoch, acc, stats, Instant::now());
     let snap = merged.inspect_err(|_| count_duplicate(coord, job, chunk))?;
     write_checkpoints(coord, snap)
 }
@@ -983,7 +994,7 @@ impl Snapshot {
                 .map_err(|e| CoordError::Internal(e.to_string()))?;
         let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
         bytes.extend_from_slice(&header);
-        bytes.extend_from_slice(&encode_partial(&self.accum));
+        bytes.extend_from_slice(&encode_chunk(&self.accum, Some(&self.stats)));
         let result = self.status.as_ref().map(|_| self.accum.develop());
         store.save_checkpoint(&self.job, &bytes, &self.new, result.as_ref())?;
         if let Some(st) = &self.status {
@@ -1004,13 +1015,16 @@ struct CheckpointHeader {
     skipped: Vec<u32>,
 }
 
-fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<(Vec<u32>, Vec<u32>, Accum), String> {
+fn decode_checkpoint(
+    bytes: &[u8],
+    max: usize,
+) -> Result<(Vec<u32>, Vec<u32>, Accum, Option<RenderStats>), String> {
     let n =
         u64::from_le_bytes(bytes.get(..8).ok_or("truncated")?.try_into().map_err(|_| "truncated")?) as usize;
     let end = n.checked_add(8).filter(|&e| e <= bytes.len()).ok_or("truncated header")?;
     let h: CheckpointHeader = serde_json::from_slice(&bytes[8..end]).map_err(|e| e.to_string())?;
-    let acc = decode_partial(&bytes[end..], max).map_err(|e| e.to_string())?;
-    Ok((h.merged, h.skipped, acc))
+    let (acc, stats) = decode_chunk(&bytes[end..], max).map_err(|e| e.to_string())?;
+    Ok((h.merged, h.skipped, acc, stats))
 }
 
 #[cfg(test)]
@@ -1077,7 +1091,7 @@ mod tests {
         let first = c.lease("w", Instant::now()).unwrap();
         let coord = Mutex::new(c);
         let acc = furnace_core::render_region(&tiny_scene(), &first.chunk.region, 0).0;
-        accept_partial(&coord, &job, first.chunk.id, first.epoch, &acc, None).unwrap();
+        accept_partial(&coord, &job, first.chunk.id, first.epoch, &acc, None, None).unwrap();
         let mut c = coord.into_inner().unwrap();
         c.jobs.get_mut(&job).unwrap().queue.push_front(first.chunk.id);
         let leased: Vec<u32> =
@@ -1099,7 +1113,7 @@ mod tests {
         let scene = tiny_scene();
         for l in &leases {
             let acc = furnace_core::render_region(&scene, &l.chunk.region, 0).0;
-            let e = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None).unwrap_err();
+            let e = accept_partial(&coord, &job, l.chunk.id, l.epoch, &acc, None, None).unwrap_err();
             assert!(matches!(&e, CoordError::Refused(m) if m.contains("cancelled")), "{e:?}");
         }
         let c = coord.lock().unwrap();

@@ -7,7 +7,8 @@
 //! luminance), each four words of a two's-complement 128-bit integer, least significant first;
 //! `N.0`, `N.1` (sample count, 64 bits; dropped samples included). One custom header
 //! attribute, `dropped` (text): the samples left out of the sums as three decimal counts,
-//! "NAN INFINITE TOO_BRIGHT" (a partial without it dropped none). EXR carries no timestamps or
+//! "NAN INFINITE TOO_BRIGHT" (a partial without it dropped none); and optionally `stats`
+//! (text): the chunk's [`RenderStats`](crate::RenderStats) as JSON. EXR carries no timestamps or
 //! host names, so equal accumulations encode to equal bytes.
 
 use std::io::Cursor;
@@ -33,7 +34,12 @@ pub enum PartialError {
     ChannelType(String),
     #[error("partial attribute 'dropped' must be three decimal counts, found '{0}'")]
     Dropped(String),
+    #[error("partial attribute 'stats' must be render statistics as JSON: {0}")]
+    Stats(String),
 }
+
+/// The header attribute holding the chunk's render statistics.
+const STATS: &str = "stats";
 
 /// The header attribute holding the dropped-sample tallies.
 const DROPPED: &str = "dropped";
@@ -54,6 +60,16 @@ pub fn partial_size_limit(width: u32, height: u32) -> usize {
 
 /// Encodes `acc` (zstd level 1 over an uncompressed EXR).
 pub fn encode_partial(acc: &Accum) -> Vec<u8> {
+    encode_chunk(acc, None)
+}
+
+/// Decodes a partial without its statistics; see [`decode_chunk`].
+pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Accum, PartialError> {
+    decode_chunk(bytes, max_bytes).map(|(acc, _)| acc)
+}
+
+/// Encodes `acc` and, when given, the render statistics of the work that made it.
+pub fn encode_chunk(acc: &Accum, stats: Option<&crate::RenderStats>) -> Vec<u8> {
     let names = channel_names();
     let mut planes: Vec<Vec<u32>> = (0..WORDS).map(|_| Vec::with_capacity(acc.pixels.len())).collect();
     for p in &acc.pixels {
@@ -70,6 +86,10 @@ pub fn encode_partial(acc: &Accum) -> Vec<u8> {
     let d = acc.dropped;
     let tallies = format!("{} {} {}", d.nan, d.infinite, d.too_bright);
     attributes.other.insert(Text::new_or_panic(DROPPED), AttributeValue::Text(Text::new_or_panic(tallies)));
+    if let Some(s) = stats {
+        let json = serde_json::to_string(s).expect("statistics serialise");
+        attributes.other.insert(Text::new_or_panic(STATS), AttributeValue::Text(Text::new_or_panic(json)));
+    }
     let layer = Layer::new(
         (acc.width as usize, acc.height as usize),
         attributes,
@@ -117,9 +137,12 @@ fn check_header(exr: &[u8]) -> std::result::Result<(), PartialError> {
     }
 }
 
-/// Decodes a partial, refusing anything that is not exactly the format above or that would
-/// decompress past `max_bytes`.
-pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Accum, PartialError> {
+/// Decodes a partial and its statistics (if it carries them), refusing anything that is not
+/// exactly the format above or that would decompress past `max_bytes`.
+pub fn decode_chunk(
+    bytes: &[u8],
+    max_bytes: usize,
+) -> std::result::Result<(Accum, Option<crate::RenderStats>), PartialError> {
     let exr = zstd::bulk::decompress(bytes, max_bytes).map_err(|e| {
         if e.to_string().contains("too small") || e.to_string().contains("Destination buffer") {
             PartialError::TooLarge(max_bytes)
@@ -177,6 +200,13 @@ pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Acc
         };
         acc.dropped = furnace_core::Dropped { nan, infinite, too_bright };
     }
+    let stats = match layer.attributes.other.get(&Text::new_or_panic(STATS)) {
+        None => None,
+        Some(AttributeValue::Text(t)) => {
+            Some(serde_json::from_str(&t.to_string()).map_err(|e| PartialError::Stats(e.to_string()))?)
+        }
+        Some(other) => return Err(PartialError::Stats(format!("not text: {other:?}"))),
+    };
     for i in 0..count {
         let mut w = [0u32; WORDS];
         for (k, plane) in planes.iter().enumerate() {
@@ -191,7 +221,7 @@ pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Acc
             acc.sample_count()
         )));
     }
-    Ok(acc)
+    Ok((acc, stats))
 }
 
 #[cfg(test)]

@@ -13,7 +13,7 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
 use furnace_core::{render_region, render_region_parallel, Accum, Scene, Stats};
-use furnace_proto::{encode_partial, ApiError, Bundle, ChunkSpec, FailureReport, Lease, LeaseRequest};
+use furnace_proto::{encode_chunk, ApiError, Bundle, ChunkSpec, FailureReport, Lease, LeaseRequest};
 pub use furnace_proto::{Link, Uploaded};
 use reqwest::blocking::{Client, RequestBuilder, Response};
 use reqwest::StatusCode;
@@ -348,9 +348,9 @@ impl Link for HttpLink {
         Ok(scene)
     }
 
-    fn upload(&self, l: &Lease, acc: &Accum, _stats: &Stats) -> Uploaded {
+    fn upload(&self, l: &Lease, acc: &Accum, stats: &Stats) -> Uploaded {
         let url = self.url(&format!("/v1/jobs/{}/chunks/{}/result?epoch={}", l.job, l.chunk.id, l.epoch));
-        match self.auth(self.http.put(&url)).body(encode_partial(acc)).send() {
+        match self.auth(self.http.put(&url)).body(encode_chunk(acc, Some(&stats.into()))).send() {
             Ok(r) if r.status().is_success() => {
                 self.answered();
                 Uploaded::Accepted
