@@ -148,17 +148,32 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
 /// Renders one region with the current rayon pool: rows in parallel, merged exactly, so the
 /// result is bit-identical to [`render_region`].
 pub fn render_region_parallel(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
+    let never = std::sync::atomic::AtomicBool::new(false);
+    render_region_parallel_until(scene, r, seed, &never).expect("never stopped")
+}
+
+/// [`render_region_parallel`] that gives up (`None`) once `stop` is set: bands of two rows not
+/// begun by then are not rendered (a worker whose lease was revoked stops within a band).
+pub fn render_region_parallel_until(
+    scene: &Scene,
+    r: &Region,
+    seed: u64,
+    stop: &std::sync::atomic::AtomicBool,
+) -> Option<(Accum, Stats)> {
     let (ax, ay, aw, ah) = accum_rect(scene, r);
     let bands: Vec<Region> =
         (r.y0..r.y1).step_by(2).map(|y| Region { y0: y, y1: (y + 2).min(r.y1), ..*r }).collect();
-    let parts: Vec<(Accum, Stats)> = bands.par_iter().map(|b| render_region(scene, b, seed)).collect();
+    let parts: Vec<(Accum, Stats)> = bands
+        .par_iter()
+        .map(|b| (!stop.load(std::sync::atomic::Ordering::Relaxed)).then(|| render_region(scene, b, seed)))
+        .collect::<Option<_>>()?;
     let mut acc = Accum::new(ax, ay, aw, ah);
     let mut st = Stats::default();
     for (a, s) in &parts {
         acc.merge(a);
         st.merge(s);
     }
-    (acc, st)
+    Some((acc, st))
 }
 
 pub fn render_image(

@@ -12,7 +12,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
-use furnace_core::{render_region, render_region_parallel, Accum, Scene, Stats};
+use furnace_core::{render_region, render_region_parallel_until, Accum, Scene, Stats};
 use furnace_proto::{encode_chunk, ApiError, Bundle, ChunkSpec, FailureReport, Lease, LeaseRequest};
 pub use furnace_proto::{Link, Uploaded};
 use reqwest::blocking::{Client, RequestBuilder, Response};
@@ -103,13 +103,18 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
         }
     };
     let t = std::time::Instant::now();
-    // Heartbeats while rendering, a third of the lease apart.
+    // Heartbeats while rendering, a third of the lease apart. A lease that is gone (revoked by
+    // a cancel or a delete, or given to another worker) stops the render: its result would be
+    // refused.
     let (tx, rx) = mpsc::channel::<()>();
     let every = Duration::from_millis((lease.deadline_ms / 3).max(50));
+    let lost = AtomicBool::new(false);
     let rendered = std::thread::scope(|s| {
+        let lost = &lost;
         s.spawn(move || {
             while let Err(mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
                 if !link.heartbeat(lease) {
+                    lost.store(true, Ordering::SeqCst);
                     break;
                 }
             }
@@ -117,13 +122,19 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
         // A panic while rendering is this chunk's failure, reported with its message; the
         // worker lives on.
         let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            pool.install(|| render_region_parallel(&scene, &lease.chunk.region, lease.settings.seed))
+            pool.install(|| {
+                render_region_parallel_until(&scene, &lease.chunk.region, lease.settings.seed, lost)
+            })
         }));
         drop(tx);
         r
     });
     let (acc, st) = match rendered {
-        Ok(r) => r,
+        Ok(Some(r)) => r,
+        Ok(None) => {
+            tracing::info!(job = %lease.job, chunk = lease.chunk.id, "lease lost while rendering: chunk dropped");
+            return false;
+        }
         Err(panic) => {
             let e = format!("render panicked: {}", furnace_core::scene::panic_message(&*panic));
             tracing::error!(job = %lease.job, chunk = lease.chunk.id, "{e}");
