@@ -48,6 +48,10 @@ pub struct ServeArgs {
     /// for its share (up to half the request time limit, then 503). No body may be larger.
     #[arg(long, default_value_t = (furnace_coordinator::api::BODY_BUDGET >> 20) as u64)]
     pub body_budget_mb: u64,
+    /// Minutes after which a paused job with no chunk in flight is set aside: its checkpoint
+    /// stored and its memory released until it is resumed or cancelled.
+    #[arg(long, default_value_t = 10.0)]
+    pub evict_paused_minutes: f64,
 }
 
 #[derive(Args)]
@@ -185,6 +189,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     let mut coord = furnace_coordinator::Coordinator::open(&a.data_dir)
         .with_context(|| format!("cannot open data folder {}", a.data_dir.display()))?;
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
+    coord.evict_paused_after = Duration::from_secs_f64(a.evict_paused_minutes.clamp(0.0, 1e6) * 60.0);
     // Local workers take the scene the coordinator loaded to check the job.
     coord.keep_scenes = a.local_workers > 0;
     let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone())

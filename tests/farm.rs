@@ -11,7 +11,7 @@ use common::*;
 use furnace_coordinator::state::accept_partial;
 use furnace_coordinator::{CoordError, Coordinator};
 use furnace_core::Scene;
-use furnace_proto::{chunk_plan, Bundle, JobSettings, JobSpec, JobState};
+use furnace_proto::{chunk_plan, Bundle, JobSettings, JobSpec, JobState, JobStatus};
 use furnace_worker::render_chunk;
 
 /// A persisted coordinator on `data` that checkpoints every 256 merges, without a time limit.
@@ -474,6 +474,91 @@ fn cancelled_jobs_keep_their_image_so_far_and_release_their_memory() {
     // Restored as cancelled, not done: no result to download, counted as cancelled.
     assert!(matches!(c.result_path(&job), Err(CoordError::Refused(_))));
     assert_eq!(c.stats(Instant::now()).jobs["cancelled"], 1);
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Issue 14: a paused job held its whole accumulation for as long as it stayed paused. Now a
+/// job paused with no chunk in flight for `evict_paused_after` is set aside: its checkpoint
+/// is stored and its memory released; its status and preview stay; resuming loads it again
+/// and it finishes with exactly the bytes of an uninterrupted render.
+#[test]
+fn idle_paused_jobs_are_set_aside_and_come_back_when_resumed() {
+    use furnace_coordinator::state::{control, set_aside_idle};
+    let dir = scratch("coord-idle");
+    let scene = load("small.xml", &[]);
+    let coord = open_coordinator(&dir.join("data"));
+    let settings = JobSettings {
+        spp: 4,
+        tile_size: 8,
+        spp_per_chunk: 2,
+        seed: 5,
+        width: 0,
+        height: 0,
+        ..Default::default()
+    };
+    let job = submit_small(&coord, &scene, settings);
+    assert_eq!(render_leases(&coord, &scene, 7), 7);
+    let in_flight = coord.lock().unwrap().lease("slow", Instant::now()).unwrap();
+    control(&coord, &job, "pause").unwrap();
+    coord.lock().unwrap().evict_paused_after = std::time::Duration::ZERO;
+    // A lease in flight keeps it in memory; its upload is still taken.
+    set_aside_idle(&coord);
+    assert!(coord.lock().unwrap().held_bytes(&job).unwrap() > 0, "set aside with a chunk in flight");
+    let (acc, stats) = render_chunk(&scene, &in_flight.chunk, in_flight.settings.seed);
+    accept_partial(&coord, &job, in_flight.chunk.id, in_flight.epoch, &acc, Some(&(&stats).into()), None)
+        .unwrap();
+    let (before, image) = {
+        let c = coord.lock().unwrap();
+        (c.status(&job).unwrap(), c.image(&job).unwrap())
+    };
+    set_aside_idle(&coord);
+    {
+        let c = coord.lock().unwrap();
+        assert_eq!(c.held_bytes(&job).unwrap(), 0, "an idle paused job still holds its accumulation");
+        let st = c.status(&job).unwrap();
+        assert_eq!(st, JobStatus { samples_per_second: st.samples_per_second, ..before.clone() });
+        assert_eq!(st.state, JobState::Paused);
+        assert!(c.image(&job).unwrap().data == image.data, "the preview of a job set aside changed");
+        assert_eq!(c.stats(Instant::now()).chunks["pending"], before.chunks_pending);
+    }
+    // Resumed: loaded again from its checkpoint, it goes on and ends as if never set aside.
+    control(&coord, &job, "resume").unwrap();
+    assert!(coord.lock().unwrap().held_bytes(&job).unwrap() > 0);
+    assert_eq!(coord.lock().unwrap().status(&job).unwrap().chunks_done, before.chunks_done);
+    render_leases(&coord, &scene, usize::MAX);
+    let c = coord.lock().unwrap();
+    let st = c.status(&job).unwrap();
+    assert_eq!(st.state, JobState::Done);
+    assert!(c.image(&job).unwrap().data == render(&scene, 4, 5).0.develop().data);
+    let mut expected = furnace_proto::RenderStats::default();
+    let full = JobSettings { width: 48, height: 40, ..st.settings.clone() };
+    for ch in chunk_plan(&full) {
+        expected.merge(&(&render_chunk(&scene, &ch, full.seed).1).into());
+    }
+    assert_eq!(st.render_stats, expected, "statistics lost on the way");
+    drop(c);
+    // Cancelled while set aside: loaded again, then ended with its image so far.
+    let settings = JobSettings {
+        spp: 4,
+        tile_size: 8,
+        spp_per_chunk: 2,
+        seed: 6,
+        width: 0,
+        height: 0,
+        ..Default::default()
+    };
+    let other = submit_small(&coord, &scene, settings);
+    render_leases(&coord, &scene, 3);
+    control(&coord, &other, "pause").unwrap();
+    let image = coord.lock().unwrap().image(&other).unwrap();
+    set_aside_idle(&coord);
+    assert_eq!(coord.lock().unwrap().held_bytes(&other).unwrap(), 0);
+    control(&coord, &other, "cancel").unwrap();
+    let c = coord.lock().unwrap();
+    let st = c.status(&other).unwrap();
+    assert_eq!((st.state, st.chunks_done), (JobState::Cancelled, 3));
+    assert!(c.image(&other).unwrap().data == image.data);
     drop(c);
     std::fs::remove_dir_all(&dir).ok();
 }

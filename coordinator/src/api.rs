@@ -742,6 +742,10 @@ pub async fn run(
                 let coord = s.coord.clone();
                 tokio::task::spawn_blocking(move || crate::state::retry_checkpoints(&coord));
             }
+            if n % 60 == 30 {
+                let coord = s.coord.clone();
+                tokio::task::spawn_blocking(move || crate::state::set_aside_idle(&coord));
+            }
             if n % 7200 == 0 && s.unused_files >= UNUSED_FILES_AT_LEAST {
                 let (store, age) = (s.store.clone(), s.unused_files);
                 tokio::task::spawn_blocking(move || {

@@ -91,9 +91,13 @@ pub(crate) struct Job {
     /// What rendering the merged chunks took (their partials' statistics, summed).
     pub(crate) stats: RenderStats,
     pub(crate) created: u64,
-    /// A finished job keeps only its final status (and its result on disk): the plan, the
-    /// chunk states, the accumulation and the scene are released.
-    pub(crate) final_status: Option<Box<JobStatus>>,
+    /// A job that ended (done or cancelled) keeps only its final status, its result stored; a
+    /// job paused for long is set aside the same way, its checkpoint stored, until it is
+    /// resumed or cancelled: the plan, the chunk states, the accumulation and the scene are
+    /// released.
+    pub(crate) released: Option<Box<JobStatus>>,
+    /// Since when the job is paused.
+    pub(crate) paused_since: Option<Instant>,
 }
 
 impl Job {
@@ -191,7 +195,8 @@ impl Job {
             samples_done: 0,
             stats: RenderStats::default(),
             created,
-            final_status: None,
+            released: None,
+            paused_since: None,
         }
     }
 
@@ -211,7 +216,7 @@ impl Job {
         self.failures = HashMap::new();
         self.workers = BTreeMap::new(); // the final status lists them
         self.scene = None;
-        self.final_status = Some(Box::new(status));
+        self.released = Some(Box::new(status));
     }
 
     /// Records an error for the job's status: at most [`MAX_ERROR_BYTES`] of it, and only the
@@ -248,13 +253,22 @@ impl Job {
     /// and `interval`, and when the job is complete) and none is being written.
     /// A cancelled job's snapshot is its last: it ends the job with the image so far.
     pub(crate) fn snapshot(&mut self, interval: Duration) -> Option<Snapshot> {
+        let due = self.since_checkpoint >= CHECKPOINT_EVERY && self.last_checkpoint.elapsed() >= interval;
+        self.snapshot_if(due)
+    }
+
+    /// A snapshot now, unless one is being written (or the job is released).
+    pub(crate) fn snapshot_now(&mut self) -> Option<Snapshot> {
+        self.snapshot_if(true)
+    }
+
+    fn snapshot_if(&mut self, due: bool) -> Option<Snapshot> {
         let end = match self.state {
-            _ if self.final_status.is_some() => return None,
+            _ if self.released.is_some() => return None,
             JobState::Cancelled => Some(JobState::Cancelled),
             _ if self.complete() => Some(JobState::Done),
             _ => None,
         };
-        let due = self.since_checkpoint >= CHECKPOINT_EVERY && self.last_checkpoint.elapsed() >= interval;
         if self.checkpointing || !(end.is_some() || due) {
             return None;
         }
@@ -275,6 +289,20 @@ impl Job {
             stats: self.stats.clone(),
             status: end.map(|state| JobStatus { state, ..self.status() }),
         })
+    }
+
+    /// Paused for at least `after`, with no lease in flight: it can be set aside.
+    pub(crate) fn idle(&self, after: Duration) -> bool {
+        self.state == JobState::Paused
+            && self.released.is_none()
+            && !self.checkpointing
+            && self.paused_since.is_some_and(|t| t.elapsed() >= after)
+            && !self.chunks.iter().any(|c| matches!(c, ChunkState::Leased { .. }))
+    }
+
+    /// Every merged chunk is in the stored checkpoint.
+    pub(crate) fn checkpoint_current(&self) -> bool {
+        self.merged.iter().all(|c| self.checkpointed.contains(c))
     }
 
     /// Every chunk merged or skipped.
@@ -369,8 +397,9 @@ impl Job {
     /// The job's status: counts, rate, ETA and error estimate, or its final status.
     pub(crate) fn status(&self) -> JobStatus {
         let j = self;
-        if let Some(st) = &j.final_status {
+        if let Some(st) = &j.released {
             return JobStatus {
+                state: j.state,
                 settings: j.spec.settings.clone(),
                 errors: j.errors.clone(),
                 ..(**st).clone()

@@ -60,6 +60,9 @@ pub struct Coordinator {
     pub keep_scenes: bool,
     /// Time between tries of a checkpoint that failed.
     pub checkpoint_retry: Duration,
+    /// A paused job is set aside (its checkpoint stored, its memory released) once paused this
+    /// long with no lease in flight; resuming or cancelling it loads it again.
+    pub evict_paused_after: Duration,
     /// Least time between two checkpoints of a job. A checkpoint encodes the job's whole
     /// accumulation (about a second for 1920 x 1080 here); between them, a restart replays the
     /// stored partials.
@@ -75,6 +78,13 @@ fn now_secs() -> u64 {
 pub enum Picture {
     Developed(furnace_core::Image),
     File(PathBuf),
+    /// A job set aside: its stored checkpoint, developed (black before any chunk is merged).
+    Checkpoint {
+        store: Arc<dyn Store>,
+        job: String,
+        width: u32,
+        height: u32,
+    },
 }
 
 impl Picture {
@@ -84,6 +94,12 @@ impl Picture {
             Picture::Developed(img) => Ok(img),
             Picture::File(path) => furnace_core::Image::read_exr(&path)
                 .map_err(|e| CoordError::Internal(format!("{}: {e}", path.display()))),
+            Picture::Checkpoint { store, job, width, height } => match store.checkpoint(&job) {
+                None => Ok(Accum::new(0, 0, width, height).develop()),
+                Some(bytes) => decode_checkpoint(&bytes, furnace_proto::partial_size_limit(width, height))
+                    .map(|(_, _, acc, _)| acc.develop())
+                    .map_err(|e| CoordError::Internal(format!("checkpoint of job {job}: {e}"))),
+            },
         }
     }
 }
@@ -174,107 +190,12 @@ impl Loader {
         job.scene = self.keep_scenes.then_some(scene);
         Ok(job)
     }
-}
 
-impl Coordinator {
-    /// Opens (or creates) the data directory and resumes every unfinished job.
-    pub fn open(data: &Path) -> Result<Coordinator, CoordError> {
-        Coordinator::with_store(Arc::new(DiskStore::open(data)?))
-    }
-
-    /// A coordinator that stores nothing: the one `furnace render` runs in its own process.
-    /// Jobs are submitted with [`Coordinator::submit_scene`]; everything lives in memory.
-    pub fn ephemeral() -> Result<Coordinator, CoordError> {
-        let mut c = Coordinator::with_store(Arc::new(MemStore::new()))?;
-        c.keep_scenes = true;
-        Ok(c)
-    }
-
-    /// A coordinator over `store`, with every job the store holds restored: finished ones as
-    /// their final status, the others from their checkpoint and stored partials.
-    pub fn with_store(store: Arc<dyn Store>) -> Result<Coordinator, CoordError> {
-        // Epochs after a restart start above every epoch handed out before.
-        let boot = store.boot()?;
-        let mut c = Coordinator {
-            store,
-            jobs: BTreeMap::new(),
-            next_epoch: boot << 32,
-            lease_duration: Duration::from_secs(30),
-            max_partial: 256 << 20,
-            keep_scenes: false,
-            checkpoint_retry: Duration::from_secs(5),
-            checkpoint_interval: Duration::from_secs(10),
-            workers: BTreeMap::new(),
-        };
-        for row in c.store.jobs()? {
-            // One job that cannot be restored is logged and left out; the others go on.
-            let restored = row.map_err(|(id, e)| (id, CoordError::Internal(e))).and_then(|row| {
-                let (id, state) = (row.id.clone(), row.state);
-                // A finished job with its final status stored comes back without its scene.
-                // (Its stored status and its row agree on how it ended.)
-                let job = match c.store.final_status(&id).filter(|st| st.state == state) {
-                    Some(st) => Ok(Job::finished(row.id, row.spec, row.created, st)),
-                    None => c.restore_job(row),
-                };
-                job.map(|j| (j, state)).map_err(|e| (id, e))
-            });
-            let (mut job, state) = match restored {
-                Ok(r) => r,
-                Err((id, e)) => {
-                    tracing::error!(job = %id, "cannot restore this job, left out until the next start: {e}");
-                    continue;
-                }
-            };
-            let id = job.id.clone();
-            // Every chunk merged but the end not recorded (a crash or failure while writing
-            // the final checkpoint): finish it now.
-            // So is a cancelled job whose last checkpoint was not written.
-            let snap = if state != JobState::Done { job.snapshot(c.checkpoint_interval) } else { None };
-            let release = state == JobState::Done && job.final_status.is_none();
-            c.jobs.insert(id.clone(), job);
-            if release {
-                if let Err(e) = c.evict(&id, true) {
-                    tracing::error!(job = %id, "cannot release the finished job: {e}");
-                }
-            }
-            if let Some(s) = snap {
-                let result = s.write(&*c.store);
-                c.checkpoint_written(&s, &result);
-                if let Err(e) = result {
-                    // The job stays open; its next merge or the next start writes it again.
-                    tracing::error!(job = %s.job, "cannot write the final checkpoint: {e}");
-                }
-            }
-        }
-        Ok(c)
-    }
-
-    /// Where this coordinator stores jobs and files.
-    pub fn store(&self) -> Arc<dyn Store> {
-        self.store.clone()
-    }
-
-    fn loader(&self) -> Loader {
-        Loader { store: self.store.clone(), keep_scenes: self.keep_scenes }
-    }
-
-    /// The job an idempotency key already names.
-    /// A key used again with the same spec names the same job; with another spec, it is
-    /// refused.
-    fn idempotent(&self, key: Option<&str>, request: &str) -> Result<Option<String>, CoordError> {
-        let Some(k) = key else { return Ok(None) };
-        match self.store.keyed(k)? {
-            Some((_, Some(h))) if h != request => {
-                Err(CoordError::Refused(format!("Idempotency-Key '{k}' was used for another job spec")))
-            }
-            other => Ok(other.map(|(id, _)| id)),
-        }
-    }
-
-    /// Rebuilds a job after a restart: checkpoint plus every stored partial not in it; a
+    /// Rebuilds a job from its stored checkpoint plus every stored partial not in it (after a
+    /// restart, or when a job set aside is resumed); a
     /// stored file that cannot be used is set aside and its chunks render again.
-    fn restore_job(&self, row: JobRow) -> Result<Job, CoordError> {
-        let mut job = self.loader().new_job(row.id, row.spec, row.state, row.created)?;
+    fn restore(&self, max_partial: usize, row: JobRow) -> Result<Job, CoordError> {
+        let mut job = self.new_job(row.id, row.spec, row.state, row.created)?;
         let id = job.id.clone();
         if let Some(bytes) = self.store.checkpoint(&id) {
             let n = job.plan.len();
@@ -318,7 +239,7 @@ impl Coordinator {
             let acc = match self
                 .store
                 .partial(&id, chunk)
-                .and_then(|bytes| decode_chunk(&bytes, self.max_partial).map_err(|e| e.to_string()))
+                .and_then(|bytes| decode_chunk(&bytes, max_partial).map_err(|e| e.to_string()))
                 .and_then(|(acc, stats)| job.fits(chunk, &acc).map(|_| (acc, stats)))
             {
                 Ok((acc, stats)) => {
@@ -357,6 +278,112 @@ impl Coordinator {
             job.queue.retain(|c| !job.merged.contains(c));
         }
         Ok(job)
+    }
+}
+
+impl Coordinator {
+    /// Opens (or creates) the data directory and resumes every unfinished job.
+    pub fn open(data: &Path) -> Result<Coordinator, CoordError> {
+        Coordinator::with_store(Arc::new(DiskStore::open(data)?))
+    }
+
+    /// A coordinator that stores nothing: the one `furnace render` runs in its own process.
+    /// Jobs are submitted with [`Coordinator::submit_scene`]; everything lives in memory.
+    pub fn ephemeral() -> Result<Coordinator, CoordError> {
+        let mut c = Coordinator::with_store(Arc::new(MemStore::new()))?;
+        c.keep_scenes = true;
+        Ok(c)
+    }
+
+    /// A coordinator over `store`, with every job the store holds restored: finished ones as
+    /// their final status, the others from their checkpoint and stored partials.
+    pub fn with_store(store: Arc<dyn Store>) -> Result<Coordinator, CoordError> {
+        // Epochs after a restart start above every epoch handed out before.
+        let boot = store.boot()?;
+        let mut c = Coordinator {
+            store,
+            jobs: BTreeMap::new(),
+            next_epoch: boot << 32,
+            lease_duration: Duration::from_secs(30),
+            max_partial: 256 << 20,
+            keep_scenes: false,
+            checkpoint_retry: Duration::from_secs(5),
+            checkpoint_interval: Duration::from_secs(10),
+            evict_paused_after: Duration::from_secs(600),
+            workers: BTreeMap::new(),
+        };
+        for row in c.store.jobs()? {
+            // One job that cannot be restored is logged and left out; the others go on.
+            let restored = row.map_err(|(id, e)| (id, CoordError::Internal(e))).and_then(|row| {
+                let (id, state) = (row.id.clone(), row.state);
+                // A finished job with its final status stored comes back without its scene.
+                // (Its stored status and its row agree on how it ended.)
+                let job = match c.store.final_status(&id).filter(|st| st.state == state) {
+                    Some(st) => Ok(Job::finished(row.id, row.spec, row.created, st)),
+                    None => c.restore_job(row),
+                };
+                job.map(|j| (j, state)).map_err(|e| (id, e))
+            });
+            let (mut job, state) = match restored {
+                Ok(r) => r,
+                Err((id, e)) => {
+                    tracing::error!(job = %id, "cannot restore this job, left out until the next start: {e}");
+                    continue;
+                }
+            };
+            let id = job.id.clone();
+            if state == JobState::Paused {
+                // Set aside again once idle for the usual time.
+                job.paused_since = Some(Instant::now());
+            }
+            // Every chunk merged but the end not recorded (a crash or failure while writing
+            // the final checkpoint): finish it now.
+            // So is a cancelled job whose last checkpoint was not written.
+            let snap = if state != JobState::Done { job.snapshot(c.checkpoint_interval) } else { None };
+            let release = state == JobState::Done && job.released.is_none();
+            c.jobs.insert(id.clone(), job);
+            if release {
+                if let Err(e) = c.evict(&id, true) {
+                    tracing::error!(job = %id, "cannot release the finished job: {e}");
+                }
+            }
+            if let Some(s) = snap {
+                let result = s.write(&*c.store);
+                c.checkpoint_written(&s, &result);
+                if let Err(e) = result {
+                    // The job stays open; its next merge or the next start writes it again.
+                    tracing::error!(job = %s.job, "cannot write the final checkpoint: {e}");
+                }
+            }
+        }
+        Ok(c)
+    }
+
+    /// Where this coordinator stores jobs and files.
+    pub fn store(&self) -> Arc<dyn Store> {
+        self.store.clone()
+    }
+
+    fn loader(&self) -> Loader {
+        Loader { store: self.store.clone(), keep_scenes: self.keep_scenes }
+    }
+
+    /// The job an idempotency key already names.
+    /// A key used again with the same spec names the same job; with another spec, it is
+    /// refused.
+    fn idempotent(&self, key: Option<&str>, request: &str) -> Result<Option<String>, CoordError> {
+        let Some(k) = key else { return Ok(None) };
+        match self.store.keyed(k)? {
+            Some((_, Some(h))) if h != request => {
+                Err(CoordError::Refused(format!("Idempotency-Key '{k}' was used for another job spec")))
+            }
+            other => Ok(other.map(|(id, _)| id)),
+        }
+    }
+
+    /// Rebuilds a job after a restart (see [`Loader::restore`]).
+    fn restore_job(&self, row: JobRow) -> Result<Job, CoordError> {
+        self.loader().restore(self.max_partial, row)
     }
 
     /// Submits a job; with an idempotency key already used, returns that job instead.
@@ -403,7 +430,13 @@ impl Coordinator {
     fn set_state(&mut self, id: &str, state: JobState) -> Result<(), CoordError> {
         self.job_mut(id)?;
         self.store.set_state(id, state)?;
-        self.job_mut(id)?.state = state;
+        let j = self.job_mut(id)?;
+        if state == JobState::Paused && j.state != JobState::Paused {
+            j.paused_since = Some(Instant::now());
+        } else if state != JobState::Paused {
+            j.paused_since = None;
+        }
+        j.state = state;
         Ok(())
     }
 
@@ -412,7 +445,7 @@ impl Coordinator {
     fn control(&mut self, id: &str, action: &str) -> Result<Option<Snapshot>, CoordError> {
         let (state, complete) = {
             let j = self.job_mut(id)?;
-            (j.state, j.final_status.is_none() && j.complete())
+            (j.state, j.released.is_none() && j.complete())
         };
         let next = match (action, state) {
             (_, JobState::Done) => return Err(CoordError::Refused(format!("job {id} is done"))),
@@ -526,7 +559,12 @@ impl Coordinator {
         if j.state == JobState::Cancelled {
             return Err(CoordError::Refused(format!("job {job} is cancelled: its leases are revoked")));
         }
-        if j.final_status.is_some() {
+        if j.released.is_some() && j.state == JobState::Paused {
+            return Err(CoordError::Refused(format!(
+                "stale lease: job {job} is paused, chunk {chunk} not leased"
+            )));
+        }
+        if j.released.is_some() {
             return Err(CoordError::Refused(format!(
                 "chunk {chunk} of job {job} is already merged: the job is done"
             )));
@@ -703,9 +741,10 @@ impl Coordinator {
         let mut pending_chunks = 0;
         for j in self.jobs.values() {
             *jobs.entry(j.state.name().into()).or_default() += 1;
-            if let Some(st) = &j.final_status {
+            if let Some(st) = &j.released {
                 *chunks.entry("done".into()).or_default() += st.chunks_done.saturating_sub(st.chunks_skipped);
                 *chunks.entry("skipped".into()).or_default() += st.chunks_skipped;
+                *chunks.entry("pending".into()).or_default() += st.chunks_pending;
             }
             for c in &j.chunks {
                 let name = match c {
@@ -741,6 +780,10 @@ impl Coordinator {
         }
         j.checkpoint_failed = None;
         j.checkpointed.extend(&snap.ids);
+        if snap.status.is_none() && j.idle(self.evict_paused_after) && j.checkpoint_current() {
+            self.set_aside(&snap.job);
+            return None;
+        }
         if let Some(st) = &snap.status {
             if st.state == JobState::Done {
                 if let Err(e) = self.set_state(&snap.job, JobState::Done) {
@@ -777,7 +820,13 @@ impl Coordinator {
     /// The job's image: developed from the accumulation, or (a finished job's) its result file.
     pub fn picture(&self, id: &str) -> Result<Picture, CoordError> {
         let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
-        Ok(match j.final_status {
+        Ok(match j.released {
+            Some(_) if j.state == JobState::Paused => Picture::Checkpoint {
+                store: self.store.clone(),
+                job: id.to_string(),
+                width: j.spec.settings.width,
+                height: j.spec.settings.height,
+            },
             Some(_) => Picture::File(self.store.result_path(id)),
             None => Picture::Developed(j.accum.develop()),
         })
@@ -812,6 +861,15 @@ impl Coordinator {
         self.jobs.remove(id);
         tracing::info!(job = %id, "job deleted");
         Ok(gone.unwrap_or_default())
+    }
+
+    /// Sets a paused, idle job aside: its status is kept, everything else released (its stored
+    /// checkpoint holds every merged chunk).
+    fn set_aside(&mut self, id: &str) {
+        let Some(j) = self.jobs.get_mut(id) else { return };
+        let st = j.status();
+        j.release(st);
+        tracing::info!(job = %id, "paused job set aside: its memory is released until it is resumed");
     }
 
     /// Releases a finished job's memory, keeping its final status (stored too, with `store`,
@@ -892,7 +950,7 @@ pub fn retry_checkpoints(coord: &Mutex<Coordinator>) {
         c.jobs
             .values_mut()
             .filter(|j| !j.checkpointing && j.checkpoint_failed.is_some_and(|t| t.elapsed() >= retry))
-            .filter(|j| j.final_status.is_none())
+            .filter(|j| j.released.is_none())
             .filter_map(|j| {
                 j.checkpoint_failed = None;
                 j.snapshot(Duration::ZERO)
@@ -907,10 +965,73 @@ pub fn retry_checkpoints(coord: &Mutex<Coordinator>) {
     }
 }
 
+/// Sets aside every paused job idle for `evict_paused_after`: one whose checkpoint is current
+/// at once, the others once a checkpoint is written (here, outside the lock). Called by the
+/// server's timer; does nothing for a store that is not durable.
+pub fn set_aside_idle(coord: &Mutex<Coordinator>) {
+    let snaps: Vec<Snapshot> = {
+        let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
+        if !c.store.durable() {
+            return;
+        }
+        let after = c.evict_paused_after;
+        let idle: Vec<String> = c.jobs.values().filter(|j| j.idle(after)).map(|j| j.id.clone()).collect();
+        let mut snaps = Vec::new();
+        for id in idle {
+            if c.jobs[&id].checkpoint_current() {
+                c.set_aside(&id);
+            } else if let Some(s) = c.jobs.get_mut(&id).and_then(|j| j.snapshot_now()) {
+                snaps.push(s);
+            }
+        }
+        snaps
+    };
+    for s in snaps {
+        let job = s.job.clone();
+        if let Err(e) = write_checkpoints(coord, Some(s)) {
+            tracing::warn!(job = %job, "checkpoint of an idle job failed: {e}");
+        }
+    }
+}
+
+/// Loads a job that was set aside again (outside the lock), so that it can be resumed or
+/// cancelled.
+fn bring_back(coord: &Mutex<Coordinator>, id: &str) -> Result<(), CoordError> {
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let (loader, max, row) = {
+        let c = lock();
+        let Some(j) = c.jobs.get(id) else { return Ok(()) };
+        if j.released.is_none() || j.state != JobState::Paused {
+            return Ok(());
+        }
+        let row = JobRow { id: id.to_string(), spec: j.spec.clone(), state: j.state, created: j.created };
+        (c.loader(), c.max_partial, row)
+    };
+    let mut job = loader.restore(max, row)?;
+    let mut c = lock();
+    match c.jobs.get(id) {
+        Some(old) if old.released.is_some() && old.state == JobState::Paused => {
+            let mut errors = old.errors.clone();
+            errors.extend(job.errors.drain(..));
+            errors.drain(..errors.len().saturating_sub(MAX_ERRORS));
+            job.errors = errors;
+            job.spec.settings.priority = old.spec.settings.priority;
+            job.paused_since = old.paused_since;
+            c.jobs.insert(id.to_string(), job);
+            tracing::info!(job = %id, "job brought back");
+        }
+        _ => {} // deleted, or brought back by another request meanwhile
+    }
+    Ok(())
+}
+
 /// Cancels, pauses or resumes a job. A cancelled job ends like a finished one: its image so
 /// far, its checkpoint and its final status are stored (outside the lock) and its memory
-/// released; its preview stays.
+/// released; its preview stays. A job set aside is loaded again first.
 pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(), CoordError> {
+    if matches!(action, "resume" | "cancel") {
+        bring_back(coord, id)?;
+    }
     let snap = coord.lock().unwrap_or_else(|e| e.into_inner()).control(id, action)?;
     if let Err(e) = write_checkpoints(coord, snap) {
         // The job stays cancelled; its memory goes at the next retry or start.
@@ -976,8 +1097,8 @@ pub fn check_upload(
 fn count_duplicate(coord: &Mutex<Coordinator>, job: &str, chunk: u32) {
     let c = coord.lock().unwrap_or_else(|e| e.into_inner());
     let merged = |j: &Job| {
-        j.state != JobState::Cancelled
-            && (j.final_status.is_some() || matches!(j.chunks.get(chunk as usize), Some(ChunkState::Done)))
+        !matches!(j.state, JobState::Cancelled | JobState::Paused)
+            && (j.released.is_some() || matches!(j.chunks.get(chunk as usize), Some(ChunkState::Done)))
     };
     if c.jobs.get(job).is_some_and(merged) {
         metrics::counter!("furnace_duplicate_uploads_total").increment(1);
