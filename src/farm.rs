@@ -52,6 +52,10 @@ pub struct ServeArgs {
     /// stored and its memory released until it is resumed or cancelled.
     #[arg(long, default_value_t = 10.0)]
     pub evict_paused_minutes: f64,
+    /// Gigabytes the jobs in memory may hold together (96 bytes a pixel of each running job);
+    /// a submission beyond it is refused with 503.
+    #[arg(long, default_value_t = 8.0)]
+    pub max_job_memory_gb: f64,
 }
 
 #[derive(Args)]
@@ -190,11 +194,12 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         .with_context(|| format!("cannot open data folder {}", a.data_dir.display()))?;
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
     coord.evict_paused_after = Duration::from_secs_f64(a.evict_paused_minutes.clamp(0.0, 1e6) * 60.0);
+    coord.max_job_bytes = (a.max_job_memory_gb.clamp(0.0, 1e6) * 1e9) as usize;
     // Local workers take the scene the coordinator loaded to check the job.
     coord.keep_scenes = a.local_workers > 0;
     let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone())
-        .with_body_budget((a.body_budget_mb.min(1 << 30) << 20) as usize);
-    state.max_connections = a.max_connections.clamp(1, u32::MAX as usize);
+        .with_body_budget((a.body_budget_mb.min(1 << 30) << 20) as usize)
+        .with_max_connections(a.max_connections.clamp(1, u32::MAX as usize));
     state.header_timeout = Duration::from_secs_f64(a.header_timeout.clamp(0.1, 3600.0));
     state.request_timeout = Duration::from_secs_f64(a.request_timeout.clamp(0.1, 86400.0));
     if a.unused_file_hours < 1.0 {

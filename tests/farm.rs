@@ -563,6 +563,37 @@ fn idle_paused_jobs_are_set_aside_and_come_back_when_resumed() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Probe of issue 14: a job whose one chunk's partial could never be uploaded (a 4096-pixel
+/// tile on a large film) was accepted and rendered again forever; and jobs had no memory
+/// cap together. Both are refused at submission now, naming the limit.
+#[test]
+fn chunks_too_big_to_upload_and_jobs_over_the_memory_cap_are_refused() {
+    let dir = scratch("coord-caps");
+    let scene = load("small.xml", &[]);
+    let coord = open_coordinator(&dir.join("data"));
+    coord.lock().unwrap().max_partial = 100_000;
+    let settings = JobSettings { spp: 1, tile_size: 64, width: 0, height: 0, ..Default::default() };
+    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
+    for (rel, path) in files {
+        coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
+    }
+    let spec = |settings: &JobSettings| JobSpec { bundle: bundle.clone(), settings: settings.clone() };
+    let e = coord.lock().unwrap().submit(spec(&settings), None).unwrap_err();
+    assert!(matches!(&e, CoordError::Unrenderable(m) if m.contains("smaller tile_size")), "{e:?}");
+    let small = JobSettings { tile_size: 8, ..settings };
+    coord.lock().unwrap().max_partial = 256 << 20;
+    // 48 x 40 pixels hold 184 KB: room for two such jobs under 400 KB, not three.
+    coord.lock().unwrap().max_job_bytes = 400_000;
+    let mut c = coord.lock().unwrap();
+    c.submit(spec(&small), None).unwrap();
+    c.submit(spec(&JobSettings { seed: 1, ..small.clone() }), None).unwrap();
+    let e = c.submit(spec(&JobSettings { seed: 2, ..small }), None).unwrap_err();
+    assert!(matches!(&e, CoordError::Busy(m) if m.contains("--max-job-memory-gb")), "{e:?}");
+    assert_eq!(c.job_ids().len(), 2);
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// Issue 14: render statistics stayed with the worker (the HTTP upload dropped them). Each
 /// partial now carries its chunk's, the job's status sums them exactly, and a restart keeps
 /// them: from the stored partials, and from the checkpoint once the job is done.

@@ -172,16 +172,29 @@ fn a_poisoned_cache_changes_nothing() {
 /// Issue 14: SIGTERM never completed while an `/events` stream was open. Now open streams
 /// end and the coordinator exits.
 #[test]
-fn sigterm_ends_open_event_streams_and_the_coordinator_exits() {
-    let dir = scratch("farmterm");
-    let (mut c, url) = coordinator(&dir.join("data"), &[], 0);
+fn event_streams_are_capped_and_sigterm_ends_them() {
+    let dir = scratch("farmevents");
+    let (mut c, url) = coordinator(&dir.join("data"), &["--max-connections", "8"], 0);
     let job = submit(&url, "small.xml", 8, 4); // no workers: it stays queued
-    let stream = std::net::TcpStream::connect(url.strip_prefix("http://").unwrap()).unwrap();
-    let request = format!("GET /v1/jobs/{job}/events HTTP/1.1\r\nHost: x\r\n\r\n");
-    std::io::Write::write_all(&mut &stream, request.as_bytes()).unwrap();
-    let mut first = String::new();
-    BufReader::new(&stream).read_line(&mut first).unwrap();
+    let open = || {
+        let stream = std::net::TcpStream::connect(url.strip_prefix("http://").unwrap()).unwrap();
+        let request = format!("GET /v1/jobs/{job}/events HTTP/1.1\r\nHost: x\r\n\r\n");
+        std::io::Write::write_all(&mut &stream, request.as_bytes()).unwrap();
+        let mut first = String::new();
+        BufReader::new(&stream).read_line(&mut first).unwrap();
+        (stream, first)
+    };
+    // A quarter of the connections may be event streams (a queued job's never ends): the
+    // third of 8 / 4 is refused, and workers still get through.
+    let (stream, first) = open();
     assert!(first.contains("200"), "{first}");
+    let (_second, first) = open();
+    assert!(first.contains("200"), "{first}");
+    let (_third, first) = open();
+    assert!(first.contains("503"), "{first}");
+    let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(5)).build().unwrap();
+    let r = http.post(format!("{url}/v1/leases")).json(&serde_json::json!({"worker": "w"})).send().unwrap();
+    assert_eq!(r.status().as_u16(), 200);
     let pid = c.0.id().to_string();
     assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
     let t = std::time::Instant::now();
@@ -257,6 +270,18 @@ fn request_bodies_share_a_budget_and_files_stream_to_disk() {
         let h = blake3::hash(&b).to_hex().to_string();
         (b, h)
     };
+    // A body of unknown length (chunked) is refused: held at the largest allowed, a few slow
+    // ones would take the whole budget.
+    let chunked = std::net::TcpStream::connect(&addr).unwrap();
+    let head = format!(
+        "PUT /v1/files/{} HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n1\r\na\r\n",
+        "2".repeat(64)
+    );
+    std::io::Write::write_all(&mut &chunked, head.as_bytes()).unwrap();
+    chunked.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    let mut answer = String::new();
+    BufReader::new(&chunked).read_line(&mut answer).unwrap();
+    assert!(answer.contains("411"), "{answer:?}");
     // Larger than the budget: refused before a byte of it is read.
     let (big, big_hash) = file(1_100_000, 1);
     let r = put(big, &big_hash);
@@ -276,6 +301,20 @@ fn request_bodies_share_a_budget_and_files_stream_to_disk() {
     assert_eq!(r.status().as_u16(), 503, "{:?}", r.text());
     assert_eq!(r.headers()["retry-after"], "1");
     assert!(t.elapsed() >= Duration::from_millis(800), "answered after {:?}", t.elapsed());
+    // A request without a body is not held: it has nothing to receive.
+    let t = Instant::now();
+    let r = http.post(format!("{url}/v1/jobs/nope/pause")).send().unwrap();
+    assert_eq!(r.status().as_u16(), 404);
+    assert!(t.elapsed() < Duration::from_millis(500), "held for {:?}", t.elapsed());
+    // A bad value is named, not echoed whole.
+    let bad = format!("{{\"worker\": \"w\", \"wait_ms\": \"{}\"}}", "9".repeat(200_000));
+    let text = http.post(format!("{url}/v1/leases")).body(bad).send().unwrap().text().unwrap();
+    assert!(
+        text.len() < 2000 && text.contains("[cut]"),
+        "{} bytes: {}",
+        text.len(),
+        &text[..text.len().min(300)]
+    );
     // Once the slow one times out, the budget is free again; the file streams to disk.
     std::thread::sleep(Duration::from_secs(2));
     assert_eq!(put(mid.clone(), &mid_hash).status().as_u16(), 201);
@@ -402,6 +441,10 @@ fn bad_uploads_are_refused_and_change_nothing() {
     let (code, e) = put(&a, a.epoch, b"garbage".to_vec());
     assert_eq!(code, 400, "{e}");
     assert!(e["error"].as_str().unwrap().contains("zstd"), "{e}");
+    // Probe of issue 14: refused uploads left the job's status silent while its chunks were
+    // rendered again and again; now each refusal is in its errors.
+    let errors = status(&url, &a.job)["errors"].to_string();
+    assert!(errors.contains(&format!("upload of chunk {} refused", a.chunk.id)), "{errors}");
     let nan = {
         use exr::prelude::*;
         let ch = SpecificChannels::rgb(|_: Vec2<usize>| (f32::NAN, f32::NAN, f32::NAN));

@@ -38,7 +38,7 @@ pub struct AppState {
     /// Set when the server shuts down: open event streams end.
     closing: Arc<tokio::sync::watch::Sender<bool>>,
     /// Connections served at once ([`MAX_CONNECTIONS`] unless set).
-    pub max_connections: usize,
+    max_connections: usize,
     /// Time a client has to send a request's headers ([`HEADER_READ_TIMEOUT`] unless set).
     pub header_timeout: Duration,
     /// Time a request may take, its body included ([`REQUEST_TIMEOUT`] unless set); an event
@@ -49,8 +49,13 @@ pub struct AppState {
     /// its share (its declared length) before its body is read: at most half the request time
     /// limit, then it is answered 503 with `Retry-After`.
     body_budget: Arc<tokio::sync::Semaphore>,
-    /// The budget's size, and so the largest body accepted.
+    /// The budget's size, in bytes.
+    budget_bytes: usize,
+    /// The largest body accepted: [`MAX_BODY`], or the budget if smaller.
     max_body: usize,
+    /// Event streams open at once (a quarter of the connection cap unless set): each holds
+    /// a connection for as long as its job runs.
+    event_streams: Arc<tokio::sync::Semaphore>,
     /// Stored files no job uses are removed once this old ([`UNUSED_FILES`] unless set);
     /// checked at start and every hour.
     pub unused_files: Duration,
@@ -89,6 +94,8 @@ impl AppState {
             unused_files: UNUSED_FILES,
             body_budget: Arc::new(tokio::sync::Semaphore::new(BODY_BUDGET / BUDGET_UNIT)),
             max_body: MAX_BODY,
+            budget_bytes: BODY_BUDGET,
+            event_streams: Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS / 4)),
         }
     }
 
@@ -98,6 +105,15 @@ impl AppState {
         let bytes = bytes.clamp(64 * BUDGET_UNIT, u32::MAX as usize * BUDGET_UNIT);
         self.body_budget = Arc::new(tokio::sync::Semaphore::new(bytes / BUDGET_UNIT));
         self.max_body = MAX_BODY.min(bytes);
+        self.budget_bytes = bytes;
+        self
+    }
+
+    /// Sets the connection cap, and with it the number of event streams open at once (a
+    /// quarter of it): streams alone cannot take every connection from the workers.
+    pub fn with_max_connections(mut self, n: usize) -> AppState {
+        self.max_connections = n.max(1);
+        self.event_streams = Arc::new(tokio::sync::Semaphore::new((n / 4).max(1)));
         self
     }
 
@@ -157,8 +173,25 @@ async fn json_errors(resp: Response) -> Response {
 
 type ApiResult = Result<Response, CoordError>;
 
+/// Runs slow work (files, scenes, decoding) on the blocking pool, off the async threads.
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Result<T, CoordError> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| CoordError::Internal(e.to_string()))
+}
+
 fn json_body<T: for<'de> Deserialize<'de>>(body: &Bytes, what: &str) -> Result<T, CoordError> {
-    serde_json::from_slice(body).map_err(|e| CoordError::Invalid(format!("{what}: invalid JSON: {e}")))
+    serde_json::from_slice(body).map_err(|e| {
+        // serde quotes the offending value: a huge one is cut, not echoed whole.
+        let mut e = e.to_string();
+        if e.len() > 512 {
+            let mut end = 512;
+            while !e.is_char_boundary(end) {
+                end -= 1;
+            }
+            e.truncate(end);
+            e.push_str(" [cut]");
+        }
+        CoordError::Invalid(format!("{what}: invalid JSON: {e}"))
+    })
 }
 
 /// Largest request body: scene files and partials.
@@ -402,18 +435,20 @@ async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
 }
 
 /// Holds a request until its body fits in the in-flight budget (its declared length; a body
-/// of unknown length counts as the largest allowed); refuses one larger than the limit.
+/// without a length is refused: 411); refuses one larger than the limit. A request with
+/// neither a length nor a chunked body has none.
 async fn body_budget(State(s): State<AppState>, req: Request, next: Next) -> Response {
+    if req.headers().contains_key(header::TRANSFER_ENCODING) {
+        // A chunked body's size is known only at its end: held at the largest allowed, a few
+        // slow ones would take the whole budget.
+        return error(StatusCode::LENGTH_REQUIRED, "a request body needs a Content-Length");
+    }
     let declared = req
         .headers()
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
-    let len = match declared {
-        Some(n) => n,
-        None if req.method() == axum::http::Method::GET || req.method() == axum::http::Method::HEAD => 0,
-        None => s.max_body as u64,
-    };
+    let len = declared.unwrap_or(0);
     if len > s.max_body as u64 {
         return CoordError::TooLarge(format!(
             "the body ({len} bytes) is over the limit of {} bytes",
@@ -431,8 +466,8 @@ async fn body_budget(State(s): State<AppState>, req: Request, next: Next) -> Res
         _ => {
             metrics::counter!("furnace_requests_over_budget_total").increment(1);
             return CoordError::Busy(format!(
-                "the coordinator is receiving {} bytes of requests at once, its limit; try again",
-                s.max_body
+                "the coordinator is receiving its limit of {} bytes of requests at once (--body-budget-mb); try again",
+                s.budget_bytes
             ))
             .into_response();
         }
@@ -522,11 +557,29 @@ async fn get_file(State(s): State<AppState>, Path(hash): Path<String>) -> ApiRes
         return Err(CoordError::Invalid(format!("'{hash}' is not a BLAKE3 hex hash")));
     }
     let store = s.store.clone();
-    let bytes = tokio::task::spawn_blocking(move || store.file(&hash).ok_or(hash))
-        .await
-        .map_err(|e| CoordError::Internal(e.to_string()))?
+    let file = blocking(move || store.open_file(&hash).ok_or(hash))
+        .await?
         .map_err(|hash| CoordError::Unknown(format!("no file {hash}")))?;
-    Ok(bytes.into_response())
+    // Streamed from disk, 64 KiB at a time: a download never holds the file in memory.
+    let len = file.metadata().map(|m| m.len()).ok();
+    let chunks = futures_util::stream::unfold(Some(tokio::fs::File::from_std(file)), |f| async move {
+        use tokio::io::AsyncReadExt;
+        let mut f = f?;
+        let mut buf = vec![0u8; 64 << 10];
+        match f.read(&mut buf).await {
+            Ok(0) => None,
+            Ok(n) => {
+                buf.truncate(n);
+                Some((Ok(Bytes::from(buf)), Some(f)))
+            }
+            Err(e) => Some((Err(e), None)),
+        }
+    });
+    let mut resp = axum::body::Body::from_stream(chunks).into_response();
+    if let Some(n) = len {
+        resp.headers_mut().insert(header::CONTENT_LENGTH, n.into());
+    }
+    Ok(resp)
 }
 
 async fn get_bundle(State(s): State<AppState>, Path(hash): Path<String>) -> ApiResult {
@@ -534,9 +587,8 @@ async fn get_bundle(State(s): State<AppState>, Path(hash): Path<String>) -> ApiR
         return Err(CoordError::Invalid(format!("'{hash}' is not a bundle hash")));
     }
     let store = s.store.clone();
-    let bytes = tokio::task::spawn_blocking(move || store.bundle_manifest(&hash).ok_or(hash))
-        .await
-        .map_err(|e| CoordError::Internal(e.to_string()))?
+    let bytes = blocking(move || store.bundle_manifest(&hash).ok_or(hash))
+        .await?
         .map_err(|hash| CoordError::Unknown(format!("no bundle {hash}")))?;
     Ok(([(header::CONTENT_TYPE, "application/json")], bytes).into_response())
 }
@@ -562,12 +614,11 @@ async fn post_job(
     let deadline = started.0;
     // The turn goes with the load: a client that hangs up does not free it early.
     let turn = s.loads.clone().acquire_owned().await.map_err(|e| CoordError::Internal(e.to_string()))?;
-    let (id, created) = tokio::task::spawn_blocking(move || {
+    let (id, created) = blocking(move || {
         let _turn = turn;
         crate::state::submit(&coord, spec, key.as_deref(), Some(deadline))
     })
-    .await
-    .map_err(|e| CoordError::Internal(e.to_string()))??;
+    .await??;
     s.new_work();
     let status = if created { StatusCode::CREATED } else { StatusCode::OK };
     Ok((status, Json(Submitted { id })).into_response())
@@ -585,10 +636,15 @@ async fn get_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult
 
 async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
     s.lock().status(&id)?;
+    // Held by the stream until it ends.
+    let turn = s.event_streams.clone().try_acquire_owned().map_err(|_| {
+        CoordError::Busy("too many event streams are open; poll GET /v1/jobs/{id} instead".into())
+    })?;
     // Ends when the job does, or when the server shuts down.
     let closing = s.closing.subscribe();
-    let stream =
-        futures_util::stream::unfold((s, id, closing, false), |(s, id, mut closing, finished)| async move {
+    let stream = futures_util::stream::unfold(
+        (s, id, closing, false, turn),
+        |(s, id, mut closing, finished, turn)| async move {
             if finished || *closing.borrow() {
                 return None;
             }
@@ -602,8 +658,9 @@ async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
                     _ = closing.changed() => {}
                 }
             }
-            Some((Ok::<_, std::convert::Infallible>(event), (s, id, closing, done)))
-        });
+            Some((Ok::<_, std::convert::Infallible>(event), (s, id, closing, done, turn)))
+        },
+    );
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
 }
 
@@ -616,27 +673,21 @@ async fn delete_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
 async fn preview(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
     let picture = s.lock().picture(&id)?;
     // A finished job's result is read without the lock.
-    let img = tokio::task::spawn_blocking(move || picture.image())
-        .await
-        .map_err(|e| CoordError::Internal(e.to_string()))??;
+    let img = blocking(move || picture.image()).await??;
     let bytes = img.png_bytes(0.0).map_err(|e| CoordError::Internal(format!("preview: {e}")))?;
     Ok(([(header::CONTENT_TYPE, "image/png")], bytes).into_response())
 }
 
 async fn result(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
     let path = s.lock().result_path(&id)?;
-    let bytes = tokio::task::spawn_blocking(move || std::fs::read(path))
-        .await
-        .map_err(|e| CoordError::Internal(e.to_string()))??;
+    let bytes = blocking(move || std::fs::read(path)).await??;
     Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response())
 }
 
 async fn control(State(s): State<AppState>, Path((id, action)): Path<(String, String)>) -> ApiResult {
     let coord = s.coord.clone();
     let id2 = id.clone();
-    tokio::task::spawn_blocking(move || crate::state::control(&coord, &id2, &action))
-        .await
-        .map_err(|e| CoordError::Internal(e.to_string()))??;
+    blocking(move || crate::state::control(&coord, &id2, &action)).await??;
     s.new_work();
     Ok(Json(s.lock().status(&id)?).into_response())
 }
@@ -707,14 +758,16 @@ async fn upload(
     let coord = s.coord.clone();
     let t = Instant::now();
     metrics::counter!("furnace_upload_bytes_total").increment(body.len() as u64);
-    tokio::task::spawn_blocking(move || -> Result<(), CoordError> {
+    blocking(move || -> Result<(), CoordError> {
         // The lease first; then decode, outside the lock: it is the slow part.
         let max = crate::state::check_upload(&coord, &id, chunk, epoch)?;
-        let (acc, stats) = decode_chunk(&body, max).map_err(|e| CoordError::Invalid(e.to_string()))?;
+        let (acc, stats) = decode_chunk(&body, max).map_err(|e| {
+            coord.lock().unwrap_or_else(|e| e.into_inner()).note_refused_upload(&id, chunk, &e.to_string());
+            CoordError::Invalid(e.to_string())
+        })?;
         crate::state::accept_partial(&coord, &id, chunk, epoch, &acc, stats.as_ref(), Some(&body))
     })
-    .await
-    .map_err(|e| CoordError::Internal(e.to_string()))??;
+    .await??;
     metrics::histogram!("furnace_upload_duration_seconds").record(t.elapsed().as_secs_f64());
     Ok(StatusCode::NO_CONTENT.into_response())
 }

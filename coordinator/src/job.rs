@@ -300,6 +300,15 @@ impl Job {
             && !self.chunks.iter().any(|c| matches!(c, ChunkState::Leased { .. }))
     }
 
+    /// Bytes the job's plan, chunk states and accumulation hold in memory (the larger part of
+    /// what a job costs: 96 bytes a pixel).
+    pub(crate) fn held_bytes(&self) -> usize {
+        self.accum.pixels.capacity() * std::mem::size_of::<furnace_core::film::PixelSum>()
+            + self.plan.capacity() * std::mem::size_of::<ChunkSpec>()
+            + self.chunks.capacity() * std::mem::size_of::<ChunkState>()
+            + self.tile_est.capacity() * 8
+    }
+
     /// Every merged chunk is in the stored checkpoint.
     pub(crate) fn checkpoint_current(&self) -> bool {
         self.merged.iter().all(|c| self.checkpointed.contains(c))

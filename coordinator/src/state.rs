@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 
 use furnace_core::{Accum, Scene};
 use furnace_proto::{
-    chunk_plan, decode_chunk, encode_chunk, Bundle, ChunkSpec, JobSettings, JobSpec, JobState, JobStatus,
-    Lease, RenderStats,
+    chunk_plan, decode_chunk, encode_chunk, Bundle, JobSettings, JobSpec, JobState, JobStatus, Lease,
+    RenderStats,
 };
 
 pub use crate::error::CoordError;
@@ -63,6 +63,9 @@ pub struct Coordinator {
     /// A paused job is set aside (its checkpoint stored, its memory released) once paused this
     /// long with no lease in flight; resuming or cancelling it loads it again.
     pub evict_paused_after: Duration,
+    /// Most bytes the jobs in memory may hold together (accumulations, plans, chunk states);
+    /// a submission beyond it is refused (503). Jobs restored at start are not refused.
+    pub max_job_bytes: usize,
     /// Least time between two checkpoints of a job. A checkpoint encodes the job's whole
     /// accumulation (about a second for 1920 x 1080 here); between them, a restart replays the
     /// stored partials.
@@ -109,6 +112,8 @@ impl Picture {
 struct Loader {
     store: Arc<dyn Store>,
     keep_scenes: bool,
+    /// Largest decompressed partial accepted: no chunk may need more.
+    max_partial: usize,
 }
 
 impl Loader {
@@ -176,6 +181,16 @@ impl Loader {
                         .into(),
                 ));
             }
+        }
+        // A chunk's partial (its tile and the filter's margin) must fit in an upload.
+        let margin = scene.film.filter.margin();
+        let side = |n: u32| (s.tile_size.saturating_add(margin.saturating_mul(2))).min(n);
+        let need = furnace_proto::partial_size_limit(side(s.width), side(s.height));
+        if need > self.max_partial {
+            return Err(CoordError::Unrenderable(format!(
+                "a chunk's partial would take {need} bytes (tile_size {} plus the filter's margin of {margin} px), more than the {} an upload may hold: use a smaller tile_size",
+                s.tile_size, self.max_partial
+            )));
         }
         let plan = chunk_plan(s);
         let n = plan.len();
@@ -310,6 +325,7 @@ impl Coordinator {
             checkpoint_retry: Duration::from_secs(5),
             checkpoint_interval: Duration::from_secs(10),
             evict_paused_after: Duration::from_secs(600),
+            max_job_bytes: 8 << 30,
             workers: BTreeMap::new(),
         };
         for row in c.store.jobs()? {
@@ -365,7 +381,7 @@ impl Coordinator {
     }
 
     fn loader(&self) -> Loader {
-        Loader { store: self.store.clone(), keep_scenes: self.keep_scenes }
+        Loader { store: self.store.clone(), keep_scenes: self.keep_scenes, max_partial: self.max_partial }
     }
 
     /// The job an idempotency key already names.
@@ -416,6 +432,16 @@ impl Coordinator {
         request: &str,
     ) -> Result<(String, bool), CoordError> {
         let id = job.id.clone();
+        let held: usize = self.jobs.values().map(Job::held_bytes).sum();
+        let need = job.held_bytes();
+        if held.saturating_add(need) > self.max_job_bytes {
+            return Err(CoordError::Busy(format!(
+                "the coordinator holds {:.2} GB of jobs in memory and this one needs {:.2} GB, over its limit of {:.2} GB (--max-job-memory-gb): wait for jobs to end, or pause or cancel some",
+                held as f64 / 1e9,
+                need as f64 / 1e9,
+                self.max_job_bytes as f64 / 1e9
+            )));
+        }
         let row =
             JobRow { id: id.clone(), spec: job.spec.clone(), state: JobState::Queued, created: job.created };
         self.store.insert_job(&row, key, request)?;
@@ -839,11 +865,15 @@ impl Coordinator {
     /// Bytes the job's plan, chunk states and accumulation hold in memory (the larger part
     /// of what a job costs: 96 bytes a pixel).
     pub fn held_bytes(&self, id: &str) -> Result<usize, CoordError> {
-        let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
-        Ok(j.accum.pixels.capacity() * std::mem::size_of::<furnace_core::film::PixelSum>()
-            + j.plan.capacity() * std::mem::size_of::<ChunkSpec>()
-            + j.chunks.capacity() * std::mem::size_of::<ChunkState>()
-            + j.tile_est.capacity() * 8)
+        Ok(self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?.held_bytes())
+    }
+
+    /// Records that an upload of `chunk` was refused as malformed (the worker drops it and the
+    /// lease expires): the job's status says why its chunk is rendered again.
+    pub fn note_refused_upload(&mut self, id: &str, chunk: u32, why: &str) {
+        if let Some(j) = self.jobs.get_mut(id).filter(|j| j.released.is_none()) {
+            j.record_error(format!("upload of chunk {chunk} refused: {why}"));
+        }
     }
 
     /// Forgets a job: its row, its state in memory; returns its folder and the bundle and
@@ -1034,8 +1064,11 @@ pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(),
     }
     let snap = coord.lock().unwrap_or_else(|e| e.into_inner()).control(id, action)?;
     if let Err(e) = write_checkpoints(coord, snap) {
-        // The job stays cancelled; its memory goes at the next retry or start.
-        tracing::error!(job = %id, "cannot store the cancelled job: {e}");
+        // The job stays cancelled; its memory goes at the next retry or start (unless it was
+        // deleted meanwhile, which is why its folder is gone).
+        if coord.lock().unwrap_or_else(|e| e.into_inner()).jobs.contains_key(id) {
+            tracing::error!(job = %id, "cannot store the cancelled job: {e}");
+        }
     }
     Ok(())
 }

@@ -98,6 +98,8 @@ pub trait Store: Send + Sync {
     /// Marks a stored file as wanted now (a client checked it is there before submitting).
     fn touch_file(&self, hash: &str);
     fn file(&self, hash: &str) -> Option<Vec<u8>>;
+    /// A stored file opened for reading, to stream it.
+    fn open_file(&self, hash: &str) -> Option<std::fs::File>;
     fn bundle_manifest(&self, hash: &str) -> Option<Vec<u8>>;
     /// Lays the bundle's files out under their paths (once per bundle) and loads its scene from
     /// there with `load`; the layout and the manifest are kept only if `load` succeeds.
@@ -168,9 +170,12 @@ impl DiskStore {
             std::fs::create_dir_all(data.join(d))?;
         }
         let tmp = |e: &std::fs::DirEntry| e.file_name().to_string_lossy().ends_with(".tmp");
-        // Bundle folders of submissions a crash interrupted.
+        // Bundle folders of submissions, and files of uploads, a crash interrupted.
         for e in std::fs::read_dir(data.join("bundles"))?.flatten().filter(tmp) {
             std::fs::remove_dir_all(e.path()).ok();
+        }
+        for e in std::fs::read_dir(data.join("files"))?.flatten().filter(tmp) {
+            std::fs::remove_file(e.path()).ok();
         }
         for job in std::fs::read_dir(data.join("jobs"))?.flatten() {
             for d in [job.path(), job.path().join("partials")] {
@@ -491,6 +496,10 @@ impl Store for DiskStore {
         std::fs::read(self.file_path(hash)).ok()
     }
 
+    fn open_file(&self, hash: &str) -> Option<std::fs::File> {
+        std::fs::File::open(self.file_path(hash)).ok()
+    }
+
     fn bundle_manifest(&self, hash: &str) -> Option<Vec<u8>> {
         std::fs::read(self.manifest_path(hash)).ok()
     }
@@ -677,6 +686,9 @@ impl Store for MemStore {
     fn file(&self, _: &str) -> Option<Vec<u8>> {
         None
     }
+    fn open_file(&self, _: &str) -> Option<std::fs::File> {
+        None
+    }
     fn bundle_manifest(&self, _: &str) -> Option<Vec<u8>> {
         None
     }
@@ -861,9 +873,15 @@ mod tests {
         .unwrap();
         assert_eq!(s.final_status("j"), Some(status));
         std::fs::write(dir.join("jobs/j/partials/.7.zst.1.1.tmp"), b"half").unwrap();
+        std::fs::write(dir.join(format!("files/.{}.1.1.tmp", "a".repeat(64))), b"half an upload").unwrap();
         drop(s);
         DiskStore::open(&dir).unwrap();
         assert!(!dir.join("jobs/j/partials/.7.zst.1.1.tmp").exists());
+        assert_eq!(
+            std::fs::read_dir(dir.join("files")).unwrap().count(),
+            0,
+            "an interrupted upload was kept"
+        );
         // A write racing the job's deletion fails; it does not bring the folder back.
         let s = DiskStore::open(&dir).unwrap();
         let gone = s.delete_job("j").unwrap().unwrap();
