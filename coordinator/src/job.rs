@@ -26,7 +26,8 @@ pub(crate) struct Snapshot {
     pub(crate) skipped: Vec<u32>,
     /// Those not in the previous checkpoint: their stored partials go once this one is written.
     pub(crate) new: Vec<u32>,
-    pub(crate) accum: Accum,
+    /// Shared with the job until it merges again (copy on write): a snapshot costs no copy.
+    pub(crate) accum: Arc<Accum>,
     /// The render statistics of the chunks in `accum`.
     pub(crate) stats: RenderStats,
     /// The job ends (every chunk is in, or it is cancelled): its final status, to store with
@@ -59,7 +60,8 @@ pub(crate) struct Job {
     pub(crate) chunks: Vec<ChunkState>,
     /// Pending chunks in hand-out order: requeued ones go to the front.
     pub(crate) queue: VecDeque<u32>,
-    pub(crate) accum: Accum,
+    /// Shared with a snapshot being written, if any; the next merge then copies it first.
+    pub(crate) accum: Arc<Accum>,
     /// Chunks whose partial is in `accum`.
     pub(crate) merged: HashSet<u32>,
     /// Chunks not to render: their tile reached the target error (noise-target jobs).
@@ -153,7 +155,7 @@ impl Job {
         job.render_plan = status.plan.clone();
         job.errors = status.errors.clone();
         job.samples_done = status.samples_done;
-        job.accum.dropped = status.dropped_samples;
+        Arc::make_mut(&mut job.accum).dropped = status.dropped_samples;
         job.release(status);
         job
     }
@@ -175,7 +177,7 @@ impl Job {
             chunks: vec![ChunkState::Pending; plan.len()],
             plan,
             queue: VecDeque::new(),
-            accum,
+            accum: Arc::new(accum),
             merged: HashSet::new(),
             skipped: HashSet::new(),
             tile_est: Vec::new(),
@@ -202,9 +204,9 @@ impl Job {
 
     /// Keeps `status` as the job's final status and lets go of everything else.
     pub(crate) fn release(&mut self, status: JobStatus) {
-        let dropped = self.accum.dropped;
-        self.accum = Accum::new(0, 0, 0, 0);
-        self.accum.dropped = dropped;
+        let mut empty = Accum::new(0, 0, 0, 0);
+        empty.dropped = self.accum.dropped;
+        self.accum = Arc::new(empty);
         self.plan = Vec::new();
         self.chunks = Vec::new();
         self.queue = VecDeque::new();

@@ -234,7 +234,7 @@ impl Loader {
             });
             match checked {
                 Ok((ids, skipped, acc, stats)) => {
-                    job.accum = acc;
+                    job.accum = Arc::new(acc);
                     job.stats = stats.unwrap_or_default();
                     job.merged = ids.iter().copied().collect();
                     job.skipped = skipped.into_iter().collect();
@@ -269,7 +269,7 @@ impl Loader {
                     continue;
                 }
             };
-            job.accum.merge(&acc);
+            Arc::make_mut(&mut job.accum).merge(&acc);
             job.merged.insert(chunk);
             job.follow_up(chunk, &acc);
         }
@@ -680,7 +680,8 @@ impl Coordinator {
         if acc.dropped.total() > 0 {
             tracing::warn!(job, chunk, worker = %worker, "chunk dropped samples: {}", acc.dropped);
         }
-        j.accum.merge(acc);
+        // Copies the accumulation only if a checkpoint of it is still being written.
+        Arc::make_mut(&mut j.accum).merge(acc);
         if let Some(s) = stats {
             j.stats.merge(s);
         }
