@@ -461,6 +461,8 @@ fn cancelled_jobs_keep_their_image_so_far_and_release_their_memory() {
     assert!(matches!(late, Err(CoordError::Refused(_))), "{late:?}");
     let resumed = furnace_coordinator::state::control(&coord, &job, "resume");
     assert!(matches!(resumed, Err(CoordError::Refused(_))), "{resumed:?}");
+    let priority = coord.lock().unwrap().set_priority(&job, 5);
+    assert!(matches!(priority, Err(CoordError::Refused(_))), "{priority:?}");
     furnace_coordinator::state::control(&coord, &job, "cancel").unwrap();
     assert_eq!(coord.lock().unwrap().status(&job).unwrap(), status);
     drop(coord);

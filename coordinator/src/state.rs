@@ -502,6 +502,9 @@ impl Coordinator {
 
     pub fn set_priority(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
         let job = self.job_mut(id)?;
+        if matches!(job.state, JobState::Done | JobState::Cancelled) {
+            return Err(CoordError::Refused(format!("job {id} is {}: it has no priority", job.state.name())));
+        }
         job.spec.settings.priority = priority;
         let spec = job.spec.clone();
         self.store.set_spec(id, &spec)?;
