@@ -71,6 +71,8 @@ pub struct Coordinator {
     /// stored partials.
     pub checkpoint_interval: Duration,
     workers: BTreeMap<String, WorkerSeen>,
+    /// When the registry was last swept of workers silent for [`FORGET_WORKER`].
+    pruned: Option<Instant>,
 }
 
 fn now_secs() -> u64 {
@@ -327,6 +329,7 @@ impl Coordinator {
             evict_paused_after: Duration::from_secs(600),
             max_job_bytes: 8 << 30,
             workers: BTreeMap::new(),
+            pruned: None,
         };
         for row in c.store.jobs()? {
             // One job that cannot be restored is logged and left out; the others go on.
@@ -721,7 +724,11 @@ impl Coordinator {
         match self.workers.get_mut(worker) {
             Some(w) => w.last_seen = now,
             None => {
-                self.workers.retain(|_, w| now.duration_since(w.last_seen) < FORGET_WORKER);
+                // Forgetting sweeps the whole registry: at most once a minute, not per new name.
+                if self.pruned.is_none_or(|t| now.saturating_duration_since(t) >= Duration::from_secs(60)) {
+                    self.workers.retain(|_, w| now.saturating_duration_since(w.last_seen) < FORGET_WORKER);
+                    self.pruned = Some(now);
+                }
                 let w = WorkerSeen { last_seen: now, chunks_done: 0, samples_done: 0 };
                 self.workers.insert(worker.to_string(), w);
             }
@@ -740,6 +747,7 @@ impl Coordinator {
         }
         self.workers
             .iter()
+            .filter(|(_, w)| now.saturating_duration_since(w.last_seen) < FORGET_WORKER)
             .map(|(name, w)| {
                 let held = leases.get(name.as_str()).copied().unwrap_or(0);
                 let silent = now.saturating_duration_since(w.last_seen);
@@ -1256,6 +1264,31 @@ mod tests {
             std::iter::from_fn(|| c.lease("w", Instant::now())).map(|l| l.chunk.id).collect();
         assert_eq!(leased.len(), 3, "{leased:?}");
         assert!(!leased.contains(&first.chunk.id));
+    }
+
+    /// Probe of issue 14: every new worker name swept the whole registry under the lock. Now
+    /// it is swept at most once a minute, and the list never shows a worker silent for an hour.
+    #[test]
+    fn workers_silent_for_an_hour_are_forgotten_without_a_sweep_per_name() {
+        let mut c = Coordinator::ephemeral().unwrap();
+        let t0 = Instant::now();
+        for k in 0..100 {
+            c.seen(&format!("old-{k}"), t0);
+        }
+        let later = t0 + FORGET_WORKER + Duration::from_secs(1);
+        c.seen("new-0", later);
+        assert_eq!(c.workers.len(), 1, "the first new name after an hour sweeps");
+        for k in 0..100 {
+            c.seen(&format!("old-{k}"), later);
+        }
+        let much_later = later + FORGET_WORKER + Duration::from_secs(1);
+        c.seen("new-1", much_later);
+        c.seen("new-2", much_later + Duration::from_secs(1));
+        // Swept once more at new-1; new-2 within the minute does not sweep again.
+        assert_eq!(c.workers.len(), 2);
+        let listed: Vec<String> =
+            c.workers(much_later + Duration::from_secs(1)).into_iter().map(|w| w.name).collect();
+        assert_eq!(listed, ["new-1", "new-2"]);
     }
 
     /// Issue 14: an upload in flight when a job was cancelled turned it into done.
