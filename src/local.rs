@@ -35,8 +35,7 @@ impl Link for LocalLink {
         self.lock().job_scene(&l.job).ok_or_else(|| format!("job {} has no scene in this process", l.job))
     }
     fn upload(&self, l: &Lease, acc: &Accum, stats: &Stats) -> Uploaded {
-        let chunk_stats = furnace_proto::RenderStats::from(stats);
-        match accept_partial(&self.coord, &l.job, l.chunk.id, l.epoch, acc, Some(&chunk_stats), None) {
+        match accept_partial(&self.coord, &l.job, l.chunk.id, l.epoch, acc, Some(stats), None) {
             Ok(()) => {
                 self.stats.lock().unwrap_or_else(|e| e.into_inner()).merge(stats);
                 Uploaded::Accepted

@@ -38,7 +38,7 @@ fn render_leases(coord: &Mutex<Coordinator>, scene: &Scene, limit: usize) -> usi
         let lease = coord.lock().unwrap().lease("w", Instant::now());
         let Some(l) = lease else { break };
         let (acc, stats) = render_chunk(scene, &l.chunk, l.settings.seed);
-        accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, Some(&(&stats).into()), None).unwrap();
+        accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, Some(&stats), None).unwrap();
         n += 1;
     }
     n
@@ -508,8 +508,7 @@ fn idle_paused_jobs_are_set_aside_and_come_back_when_resumed() {
     set_aside_idle(&coord);
     assert!(coord.lock().unwrap().held_bytes(&job).unwrap() > 0, "set aside with a chunk in flight");
     let (acc, stats) = render_chunk(&scene, &in_flight.chunk, in_flight.settings.seed);
-    accept_partial(&coord, &job, in_flight.chunk.id, in_flight.epoch, &acc, Some(&(&stats).into()), None)
-        .unwrap();
+    accept_partial(&coord, &job, in_flight.chunk.id, in_flight.epoch, &acc, Some(&stats), None).unwrap();
     let (before, image) = {
         let c = coord.lock().unwrap();
         (c.status(&job).unwrap(), c.image(&job).unwrap())
@@ -536,7 +535,7 @@ fn idle_paused_jobs_are_set_aside_and_come_back_when_resumed() {
     let mut expected = furnace_proto::RenderStats::default();
     let full = JobSettings { width: 48, height: 40, ..st.settings.clone() };
     for ch in chunk_plan(&full) {
-        expected.merge(&(&render_chunk(&scene, &ch, full.seed).1).into());
+        expected.merge(&render_chunk(&scene, &ch, full.seed).1);
     }
     assert_eq!(st.render_stats, expected, "statistics lost on the way");
     drop(c);
@@ -617,7 +616,7 @@ fn render_statistics_travel_with_partials_and_survive_restarts() {
     let full =
         JobSettings { width: scene.film.crop_width, height: scene.film.crop_height, ..settings.clone() };
     for c in chunk_plan(&full) {
-        expected.merge(&(&render_chunk(&scene, &c, full.seed).1).into());
+        expected.merge(&render_chunk(&scene, &c, full.seed).1);
     }
     assert!(expected.rays > 0 && expected.samples == 48 * 40 * 4);
     let coord = open_coordinator(&data);

@@ -130,7 +130,7 @@ fn two_workers_render_the_same_bytes_as_furnace_render() {
     let settings: furnace_proto::JobSettings = serde_json::from_value(s["settings"].clone()).unwrap();
     let mut expected = furnace_proto::RenderStats::default();
     for c in furnace_proto::chunk_plan(&settings) {
-        expected.merge(&(&furnace_worker::render_chunk(&scene, &c, settings.seed).1).into());
+        expected.merge(&furnace_worker::render_chunk(&scene, &c, settings.seed).1);
     }
     let got: furnace_proto::RenderStats = serde_json::from_value(s["render_stats"].clone()).unwrap();
     assert_eq!(got, expected);

@@ -148,10 +148,6 @@ fn migrate(db: &rusqlite::Connection) -> Result<(), CoordError> {
     Ok(())
 }
 
-fn state_name(state: JobState) -> &'static str {
-    state.name()
-}
-
 fn json<T: serde::Serialize>(v: &T) -> Result<String, CoordError> {
     serde_json::to_string(v).map_err(|e| CoordError::Internal(e.to_string()))
 }
@@ -291,14 +287,7 @@ impl Store for DiskStore {
         let inserted = self.db().execute(
             "INSERT INTO jobs (id, spec, state, idempotency_key, created, request_hash)
              VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-            rusqlite::params![
-                row.id,
-                json(&row.spec)?,
-                state_name(row.state),
-                key,
-                row.created as i64,
-                request
-            ],
+            rusqlite::params![row.id, json(&row.spec)?, row.state.name(), key, row.created as i64, request],
         );
         if let Err(e) = inserted {
             std::fs::remove_dir_all(&dir).ok();
@@ -308,8 +297,7 @@ impl Store for DiskStore {
     }
 
     fn set_state(&self, id: &str, state: JobState) -> Result<(), CoordError> {
-        self.db()
-            .execute("UPDATE jobs SET state = ?1 WHERE id = ?2", rusqlite::params![state_name(state), id])?;
+        self.db().execute("UPDATE jobs SET state = ?1 WHERE id = ?2", rusqlite::params![state.name(), id])?;
         Ok(())
     }
 

@@ -23,7 +23,6 @@ pub use image_io::Image;
 pub use integrator::Stats;
 pub use plan::RenderPlan;
 pub use render::{
-    accum_rect, plan_regions, render_image, render_region, render_region_parallel,
-    render_region_parallel_until, Region,
+    accum_rect, plan_regions, render_image, render_region, render_region_parallel_until, Region,
 };
 pub use scene::{Scene, SceneError};

@@ -142,18 +142,10 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
     (acc, st)
 }
 
-/// Renders the whole image at `spp` samples per pixel on the current rayon pool, calling
-/// `progress(samples_done)` as regions finish. The result does not depend on `tile`,
-/// `spp_per_chunk` or the thread count.
-/// Renders one region with the current rayon pool: rows in parallel, merged exactly, so the
-/// result is bit-identical to [`render_region`].
-pub fn render_region_parallel(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
-    let never = std::sync::atomic::AtomicBool::new(false);
-    render_region_parallel_until(scene, r, seed, &never).expect("never stopped")
-}
-
-/// [`render_region_parallel`] that gives up (`None`) once `stop` is set: bands of two rows not
-/// begun by then are not rendered (a worker whose lease was revoked stops within a band).
+/// Renders one region with the current rayon pool: bands of two rows in parallel, merged
+/// exactly, so the result is bit-identical to [`render_region`]. Gives up (`None`) once `stop`
+/// is set: bands not begun by then are not rendered (a worker whose lease was revoked stops
+/// within a band).
 pub fn render_region_parallel_until(
     scene: &Scene,
     r: &Region,
@@ -176,6 +168,9 @@ pub fn render_region_parallel_until(
     Some((acc, st))
 }
 
+/// Renders the whole image at `spp` samples per pixel on the current rayon pool, calling
+/// `progress(samples_done)` as regions finish. The result does not depend on `tile`,
+/// `spp_per_chunk` or the thread count.
 pub fn render_image(
     scene: &Scene,
     spp: u64,

@@ -260,68 +260,10 @@ pub struct Heartbeat {
     pub epoch: u64,
 }
 
-/// What rendering took, counted by stage: a chunk's partial carries its own (the `stats`
-/// attribute), a job's status their sum. Counts add up exactly, whatever the order.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct RenderStats {
-    /// Camera samples traced.
-    pub samples: u64,
-    /// Samples that drew a point on the lens.
-    pub lens_samples: u64,
-    /// Closest-hit queries.
-    pub rays: u64,
-    /// Shadow (any-hit) queries.
-    pub shadow_rays: u64,
-    /// Light samples drawn, by kind: area, point, spot, directional, constant, envmap.
-    pub light_samples: [u64; furnace_core::light::LightKind::COUNT],
-    /// BSDF samples drawn.
-    pub bsdf_samples: u64,
-    /// Escaped rays that looked up lights at infinity.
-    pub escaped_lookups: u64,
-    /// Texture footprints computed from ray differentials.
-    pub footprints: u64,
-}
-
-impl RenderStats {
-    pub fn merge(&mut self, o: &RenderStats) {
-        self.merge_core(&o.to_core());
-    }
-
-    fn merge_core(&mut self, o: &furnace_core::Stats) {
-        let mut s = self.to_core();
-        s.merge(o);
-        *self = RenderStats::from(&s);
-    }
-
-    pub fn to_core(&self) -> furnace_core::Stats {
-        furnace_core::Stats {
-            samples: self.samples,
-            lens_samples: self.lens_samples,
-            rays: self.rays,
-            shadow_rays: self.shadow_rays,
-            light_samples: self.light_samples,
-            bsdf_samples: self.bsdf_samples,
-            escaped_lookups: self.escaped_lookups,
-            footprints: self.footprints,
-        }
-    }
-}
-
-impl From<&furnace_core::Stats> for RenderStats {
-    fn from(s: &furnace_core::Stats) -> RenderStats {
-        RenderStats {
-            samples: s.samples,
-            lens_samples: s.lens_samples,
-            rays: s.rays,
-            shadow_rays: s.shadow_rays,
-            light_samples: s.light_samples,
-            bsdf_samples: s.bsdf_samples,
-            escaped_lookups: s.escaped_lookups,
-            footprints: s.footprints,
-        }
-    }
-}
+/// What rendering took, counted by stage (the renderer's own counters): a chunk's partial
+/// carries its own (the `stats` attribute), a job's status their sum. Counts add up exactly,
+/// whatever the order.
+pub use furnace_core::Stats as RenderStats;
 
 /// `POST /v1/jobs/{id}/chunks/{chunk}/heartbeat`: the lease's new deadline, in milliseconds
 /// from now.

@@ -361,7 +361,7 @@ impl Link for HttpLink {
 
     fn upload(&self, l: &Lease, acc: &Accum, stats: &Stats) -> Uploaded {
         let url = self.url(&format!("/v1/jobs/{}/chunks/{}/result?epoch={}", l.job, l.chunk.id, l.epoch));
-        match self.auth(self.http.put(&url)).body(encode_chunk(acc, Some(&stats.into()))).send() {
+        match self.auth(self.http.put(&url)).body(encode_chunk(acc, Some(stats))).send() {
             Ok(r) if r.status().is_success() => {
                 self.answered();
                 Uploaded::Accepted

@@ -5,8 +5,10 @@ pub mod path;
 use crate::light::LightKind;
 
 /// Counters of the work a render did, by stage. Cheap (thread-local sums merged per chunk);
-/// they let tests prove that a stage the plan leaves out never runs.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+/// they let tests prove that a stage the plan leaves out never runs. They travel with the
+/// farm's partials (as `furnace_proto::RenderStats`).
+#[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct Stats {
     /// Camera samples traced.
     pub samples: u64,
