@@ -665,8 +665,8 @@ async fn job_events(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
 }
 
 async fn delete_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {
-    let paths = s.lock().delete(&id)?;
-    tokio::task::spawn_blocking(move || crate::store::remove_paths(&paths)).await.ok();
+    let coord = s.coord.clone();
+    blocking(move || crate::state::delete(&coord, &id)).await??;
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
@@ -694,7 +694,8 @@ async fn control(State(s): State<AppState>, Path((id, action)): Path<(String, St
 
 async fn priority(State(s): State<AppState>, Path(id): Path<String>, body: Bytes) -> ApiResult {
     let p: Priority = json_body(&body, "priority")?;
-    s.lock().set_priority(&id, p.priority)?;
+    let (coord, id2) = (s.coord.clone(), id.clone());
+    blocking(move || crate::state::set_priority(&coord, &id2, p.priority)).await??;
     s.new_work();
     Ok(Json(s.lock().status(&id)?).into_response())
 }
@@ -790,6 +791,15 @@ pub async fn run(
             }
             if s.lock().expire_leases(Instant::now()) > 0 {
                 s.new_work();
+            }
+            // Rows changed by leases (a job running now).
+            if s.lock().rows_due() {
+                let coord = s.coord.clone();
+                tokio::task::spawn_blocking(move || {
+                    if let Err(e) = crate::state::sync_rows(&coord) {
+                        tracing::warn!("cannot store the jobs' rows: {e}");
+                    }
+                });
             }
             if n % 4 == 0 {
                 let coord = s.coord.clone();

@@ -10,7 +10,7 @@
 //! acknowledged is lost and nothing is merged twice. Leases live in memory: after a restart
 //! every unfinished chunk is pending again, under epochs above all earlier ones.
 
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -24,7 +24,7 @@ use furnace_proto::{
 pub use crate::error::CoordError;
 use crate::job::{ChunkState, Job, Snapshot};
 pub use crate::job::{MAX_ERRORS, MAX_ERROR_BYTES};
-use crate::store::{DiskStore, JobRow, MemStore, Store};
+use crate::store::{DiskStore, JobRow, MemStore, RowOp, Store};
 
 /// The hash of a submitted spec, as submitted (before the scene fills in its defaults).
 fn request_hash(spec: &JobSpec) -> String {
@@ -73,6 +73,17 @@ pub struct Coordinator {
     workers: BTreeMap<String, WorkerSeen>,
     /// When the registry was last swept of workers silent for [`FORGET_WORKER`].
     pruned: Option<Instant>,
+    /// Idempotency keys: the job each names and the hash of the request it came with (kept
+    /// here, so that a submission reads no database under the lock).
+    keys: HashMap<String, (String, Option<String>)>,
+    /// Jobs whose row changed since the store last wrote it ([`sync_rows`]).
+    dirty: BTreeSet<String>,
+    /// New jobs whose row is not stored yet: their idempotency key and request hash.
+    unwritten: HashMap<String, (Option<String>, String)>,
+    /// Jobs with a row that could not be restored at start (they can still be deleted).
+    left_out: HashSet<String>,
+    /// Held by whoever writes rows: one batch at a time, each taken when its writer starts.
+    row_writer: Arc<Mutex<()>>,
 }
 
 fn now_secs() -> u64 {
@@ -330,7 +341,15 @@ impl Coordinator {
             max_job_bytes: 8 << 30,
             workers: BTreeMap::new(),
             pruned: None,
+            keys: HashMap::new(),
+            dirty: BTreeSet::new(),
+            unwritten: HashMap::new(),
+            left_out: HashSet::new(),
+            row_writer: Arc::new(Mutex::new(())),
         };
+        for (key, id, request) in c.store.keys()? {
+            c.keys.insert(key, (id, request));
+        }
         for row in c.store.jobs()? {
             // One job that cannot be restored is logged and left out; the others go on.
             let restored = row.map_err(|(id, e)| (id, CoordError::Internal(e))).and_then(|row| {
@@ -347,6 +366,7 @@ impl Coordinator {
                 Ok(r) => r,
                 Err((id, e)) => {
                     tracing::error!(job = %id, "cannot restore this job, left out until the next start: {e}");
+                    c.left_out.insert(id);
                     continue;
                 }
             };
@@ -375,6 +395,9 @@ impl Coordinator {
                 }
             }
         }
+        if let Err(e) = c.write_rows_now() {
+            tracing::error!("cannot record the jobs finished at start: {e}");
+        }
         Ok(c)
     }
 
@@ -392,11 +415,11 @@ impl Coordinator {
     /// refused.
     fn idempotent(&self, key: Option<&str>, request: &str) -> Result<Option<String>, CoordError> {
         let Some(k) = key else { return Ok(None) };
-        match self.store.keyed(k)? {
+        match self.keys.get(k) {
             Some((_, Some(h))) if h != request => {
                 Err(CoordError::Refused(format!("Idempotency-Key '{k}' was used for another job spec")))
             }
-            other => Ok(other.map(|(id, _)| id)),
+            other => Ok(other.map(|(id, _)| id.clone())),
         }
     }
 
@@ -405,14 +428,21 @@ impl Coordinator {
         self.loader().restore(self.max_partial, row)
     }
 
-    /// Submits a job; with an idempotency key already used, returns that job instead.
+    /// Submits a job; with an idempotency key already used, returns that job instead. Loads
+    /// the scene and stores the row with `&mut self`: for a coordinator used by one thread
+    /// (`furnace render`, tests); the server calls [`submit`], which does both without the lock.
     pub fn submit(&mut self, spec: JobSpec, key: Option<&str>) -> Result<(String, bool), CoordError> {
         let request = request_hash(&spec);
         if let Some(id) = self.idempotent(key, &request)? {
             return Ok((id, false));
         }
         let job = self.loader().submitted(spec, key)?;
-        self.insert_job(job, key, &request)
+        let id = self.insert_job(job, key, &request)?;
+        if let Err(e) = self.write_rows_now() {
+            self.unsubmit(&id);
+            return Err(e);
+        }
+        Ok((id, true))
     }
 
     /// Submits a job for a scene already loaded in this process. Such a job has no bundle and
@@ -428,12 +458,8 @@ impl Coordinator {
         Ok(id)
     }
 
-    fn insert_job(
-        &mut self,
-        job: Job,
-        key: Option<&str>,
-        request: &str,
-    ) -> Result<(String, bool), CoordError> {
+    /// Adds a new job, its row to be stored.
+    fn insert_job(&mut self, job: Job, key: Option<&str>, request: &str) -> Result<String, CoordError> {
         let id = job.id.clone();
         let held: usize = self.jobs.values().map(Job::held_bytes).sum();
         let need = job.held_bytes();
@@ -445,11 +471,83 @@ impl Coordinator {
                 self.max_job_bytes as f64 / 1e9
             )));
         }
-        let row =
-            JobRow { id: id.clone(), spec: job.spec.clone(), state: JobState::Queued, created: job.created };
-        self.store.insert_job(&row, key, request)?;
+        if let Some(k) = key {
+            self.keys.insert(k.to_string(), (id.clone(), Some(request.to_string())));
+        }
+        self.unwritten.insert(id.clone(), (key.map(String::from), request.to_string()));
+        self.dirty.insert(id.clone());
         self.jobs.insert(id.clone(), job);
-        Ok((id, true))
+        Ok(id)
+    }
+
+    /// Takes back a submission whose row could not be stored, unless it is stored now;
+    /// returns whether it did (call it with no rows being written).
+    fn unsubmit(&mut self, id: &str) -> bool {
+        if self.unwritten.remove(id).is_none() {
+            return false;
+        }
+        self.jobs.remove(id);
+        self.dirty.remove(id);
+        self.keys.retain(|_, (j, _)| j != id);
+        true
+    }
+
+    /// The row changes not yet stored, as they are now, deletions first (a deleted job's
+    /// idempotency key may name a new one); they count as stored from here (see
+    /// [`Coordinator::rows_written`]).
+    fn take_rows(&mut self) -> Vec<RowOp> {
+        let mut ops = Vec::new();
+        for id in std::mem::take(&mut self.dirty) {
+            let Some(j) = self.jobs.get(&id) else {
+                // Deleted; a job deleted before its row was stored has none to delete.
+                if self.unwritten.remove(&id).is_none() {
+                    ops.push(RowOp::Delete(id));
+                }
+                continue;
+            };
+            let row = JobRow { id: id.clone(), spec: j.spec.clone(), state: j.state, created: j.created };
+            ops.push(match self.unwritten.get(&id) {
+                Some((key, request)) => RowOp::Insert { row, key: key.clone(), request: request.clone() },
+                None => RowOp::Update(row),
+            });
+        }
+        ops.sort_by_key(|op| !matches!(op, RowOp::Delete(_)));
+        ops
+    }
+
+    /// Records how a batch of [`Coordinator::take_rows`] ended: stored, or to be written again.
+    fn rows_written(&mut self, ops: &[RowOp], result: &Result<Vec<PathBuf>, CoordError>) {
+        for op in ops {
+            match (op, result) {
+                (RowOp::Insert { row, .. }, Ok(_)) => {
+                    self.unwritten.remove(&row.id);
+                }
+                (_, Ok(_)) => {}
+                (RowOp::Insert { row, .. } | RowOp::Update(row), Err(_)) => {
+                    self.dirty.insert(row.id.clone());
+                }
+                (RowOp::Delete(id), Err(_)) => {
+                    self.dirty.insert(id.clone());
+                }
+            }
+        }
+    }
+
+    /// Whether some job's row is to be stored.
+    pub fn rows_due(&self) -> bool {
+        !self.dirty.is_empty()
+    }
+
+    /// Stores the changed rows while holding the lock, for a coordinator used by one thread;
+    /// returns what the deleted jobs leave to remove. The server uses [`sync_rows`].
+    fn write_rows_now(&mut self) -> Result<Vec<PathBuf>, CoordError> {
+        let ops = self.take_rows();
+        if ops.is_empty() {
+            return Ok(Vec::new());
+        }
+        let result = self.store.write_rows(&ops);
+        self.rows_written(&ops, &result);
+        result
     }
 
     fn job_mut(&mut self, id: &str) -> Result<&mut Job, CoordError> {
@@ -457,8 +555,6 @@ impl Coordinator {
     }
 
     fn set_state(&mut self, id: &str, state: JobState) -> Result<(), CoordError> {
-        self.job_mut(id)?;
-        self.store.set_state(id, state)?;
         let j = self.job_mut(id)?;
         if state == JobState::Paused && j.state != JobState::Paused {
             j.paused_since = Some(Instant::now());
@@ -466,6 +562,7 @@ impl Coordinator {
             j.paused_since = None;
         }
         j.state = state;
+        self.dirty.insert(id.to_string());
         Ok(())
     }
 
@@ -503,14 +600,20 @@ impl Coordinator {
         Ok(if store { self.job_mut(id)?.snapshot(Duration::ZERO) } else { None })
     }
 
+    /// Sets a job's priority and stores it with `&mut self` (see [`Coordinator::submit`]); the
+    /// server calls [`set_priority`].
     pub fn set_priority(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
+        self.reprioritise(id, priority)?;
+        self.write_rows_now().map(drop)
+    }
+
+    fn reprioritise(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
         let job = self.job_mut(id)?;
         if matches!(job.state, JobState::Done | JobState::Cancelled) {
             return Err(CoordError::Refused(format!("job {id} is {}: it has no priority", job.state.name())));
         }
         job.spec.settings.priority = priority;
-        let spec = job.spec.clone();
-        self.store.set_spec(id, &spec)?;
+        self.dirty.insert(id.to_string());
         Ok(())
     }
 
@@ -570,10 +673,9 @@ impl Coordinator {
         }
         job.workers.insert(worker.to_string(), now);
         if job.state == JobState::Queued {
+            // Stored by the next sync of rows (a restart treats queued and running alike).
             job.state = JobState::Running;
-            if let Err(e) = self.store.set_state(&id, JobState::Running) {
-                tracing::warn!(job = %id, "cannot record the job as running: {e}");
-            }
+            self.dirty.insert(id.clone());
         }
         let job = &self.jobs[&id];
         Some(Lease {
@@ -888,21 +990,24 @@ impl Coordinator {
         }
     }
 
-    /// Forgets a job: its row, its state in memory; returns its folder and the bundle and
-    /// stored files no other job uses, for the caller to remove outside the lock. Leases of it
-    /// are refused from now on.
+    /// Deletes a job with `&mut self` (see [`Coordinator::submit`]): its row and its state in
+    /// memory; returns its folder and the bundle and stored files no other job uses, for the
+    /// caller to remove. The server calls [`delete`].
     pub fn delete(&mut self, id: &str) -> Result<Vec<PathBuf>, CoordError> {
-        if id.is_empty() || !id.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') {
-            return Err(CoordError::Unknown(format!("no job '{id}'")));
-        }
+        self.forget(id)?;
+        self.write_rows_now()
+    }
+
+    /// Forgets a job, its row to be deleted: leases of it are refused from now on.
+    fn forget(&mut self, id: &str) -> Result<(), CoordError> {
         // A job left out at the last start (its scene files gone) has a row but no state.
-        let gone = self.store.delete_job(id)?;
-        if gone.is_none() && !self.jobs.contains_key(id) {
+        if self.jobs.remove(id).is_none() && !self.left_out.remove(id) {
             return Err(CoordError::Unknown(format!("no job '{id}'")));
         }
-        self.jobs.remove(id);
+        self.keys.retain(|_, (j, _)| j != id);
+        self.dirty.insert(id.to_string());
         tracing::info!(job = %id, "job deleted");
-        Ok(gone.unwrap_or_default())
+        Ok(())
     }
 
     /// Sets a paused, idle job aside: its status is kept, everything else released (its stored
@@ -983,6 +1088,29 @@ fn write_checkpoints(coord: &Mutex<Coordinator>, mut snap: Option<Snapshot>) -> 
         snap = coord.lock().unwrap_or_else(|e| e.into_inner()).checkpoint_written(&s, &result);
         result?;
     }
+    // A finished job's state.
+    sync_rows(coord)
+}
+
+/// Stores the job rows changed since the last time (submissions, states, priorities,
+/// deletions) without the coordinator's lock, and removes what deleted jobs leave. One writer
+/// at a time, each writing the rows as they are when it starts: the store always ends with
+/// the latest. A request whose change must be stored before it is answered calls this after
+/// making the change; the server's timer calls it for the others (a job leased, so running).
+pub fn sync_rows(coord: &Mutex<Coordinator>) -> Result<(), CoordError> {
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let writer = lock().row_writer.clone();
+    let _turn = writer.lock().unwrap_or_else(|e| e.into_inner());
+    let (store, ops) = {
+        let mut c = lock();
+        (c.store.clone(), c.take_rows())
+    };
+    if ops.is_empty() {
+        return Ok(());
+    }
+    let result = store.write_rows(&ops);
+    lock().rows_written(&ops, &result);
+    crate::store::remove_paths(&result?);
     Ok(())
 }
 
@@ -1086,7 +1214,20 @@ pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(),
             tracing::error!(job = %id, "cannot store the cancelled job: {e}");
         }
     }
-    Ok(())
+    sync_rows(coord)
+}
+
+/// Sets a job's priority and stores it, without the lock.
+pub fn set_priority(coord: &Mutex<Coordinator>, id: &str, priority: i32) -> Result<(), CoordError> {
+    coord.lock().unwrap_or_else(|e| e.into_inner()).reprioritise(id, priority)?;
+    sync_rows(coord)
+}
+
+/// Deletes a job: forgotten under the lock (its leases refused from then on), its row, folder
+/// and the files no other job uses removed without it.
+pub fn delete(coord: &Mutex<Coordinator>, id: &str) -> Result<(), CoordError> {
+    coord.lock().unwrap_or_else(|e| e.into_inner()).forget(id)?;
+    sync_rows(coord)
 }
 
 /// Submits a job, locking the coordinator only to look up the idempotency key and to insert
@@ -1116,12 +1257,24 @@ pub fn submit(
             started.elapsed().as_secs_f64()
         )));
     }
-    let mut c = lock();
-    // A submission with the same key that finished meanwhile wins.
-    match c.idempotent(key, &request)? {
-        Some(id) => Ok((id, false)),
-        None => c.insert_job(job, key, &request),
+    let id = {
+        let mut c = lock();
+        // A submission with the same key that finished meanwhile wins.
+        if let Some(id) = c.idempotent(key, &request)? {
+            return Ok((id, false));
+        }
+        c.insert_job(job, key, &request)?
+    };
+    // Answered only once its row is stored; if it cannot be, the job is taken back (no
+    // writer may be storing it meanwhile).
+    if let Err(e) = sync_rows(coord) {
+        let writer = lock().row_writer.clone();
+        let _turn = writer.lock().unwrap_or_else(|e| e.into_inner());
+        if lock().unsubmit(&id) {
+            return Err(e);
+        }
     }
+    Ok((id, true))
 }
 
 /// The first check of an upload, before its body is decoded: the chunk must be leased under
@@ -1220,6 +1373,79 @@ mod tests {
             ..Default::default()
         };
         c.submit_scene(tiny_scene(), settings).unwrap()
+    }
+
+    /// A coordinator over a data folder with one stored job `j` (key `k`) of the tiny scene.
+    fn stored(name: &str) -> (PathBuf, Arc<Mutex<Coordinator>>) {
+        let dir = std::env::temp_dir().join(format!("furnace-state-{name}-{}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        let mut c = Coordinator::open(&dir).unwrap();
+        let bundle = Bundle { scene: "tiny.xml".into(), files: BTreeMap::new() };
+        let settings = JobSettings { spp: 4, tile_size: 4, spp_per_chunk: 1, ..Default::default() };
+        let spec = JobSpec { bundle, settings };
+        let job = c.loader().job_from_scene("j".into(), spec, JobState::Queued, 1, tiny_scene()).unwrap();
+        c.insert_job(job, Some("k"), "h").unwrap();
+        c.write_rows_now().unwrap();
+        (dir, Arc::new(Mutex::new(c)))
+    }
+
+    fn stored_row(dir: &Path, id: &str) -> Option<(i32, String)> {
+        let db = rusqlite::Connection::open(dir.join("furnace.db")).unwrap();
+        db.query_row("SELECT spec, state FROM jobs WHERE id = ?1", [id], |r| {
+            let spec: JobSpec = serde_json::from_str(&r.get::<_, String>(0)?).unwrap();
+            Ok((spec.settings.priority, r.get(1)?))
+        })
+        .ok()
+    }
+
+    /// Issue 14: job rows were written to SQLite (and synced) under the coordinator's lock, so
+    /// one slow write held every lease, upload and status. Now the lock is free meanwhile, and
+    /// the store still ends with the latest row.
+    #[test]
+    fn job_rows_are_stored_without_the_lock() {
+        let (dir, coord) = stored("unlocked");
+        // Another connection holds the database: the next row write waits for it.
+        let mut db = rusqlite::Connection::open(dir.join("furnace.db")).unwrap();
+        let held = db.transaction_with_behavior(rusqlite::TransactionBehavior::Exclusive).unwrap();
+        let c2 = coord.clone();
+        let writer = std::thread::spawn(move || set_priority(&c2, "j", 7));
+        std::thread::sleep(Duration::from_millis(300));
+        assert!(!writer.is_finished(), "the write did not wait for the database");
+        let t = Instant::now();
+        let lease = coord.try_lock().expect("the lock is held while the row is written").lease("w", t);
+        assert!(lease.is_some() && t.elapsed() < Duration::from_millis(100));
+        assert_eq!(coord.lock().unwrap().status("j").unwrap().settings.priority, 7);
+        held.rollback().unwrap();
+        writer.join().unwrap().unwrap();
+        assert_eq!(stored_row(&dir, "j"), Some((7, "queued".into())));
+        // The lease's change (running) is stored by the next sync, the server's timer's.
+        assert!(coord.lock().unwrap().rows_due());
+        sync_rows(&coord).unwrap();
+        assert_eq!(stored_row(&dir, "j"), Some((7, "running".into())));
+        delete(&coord, "j").unwrap();
+        assert_eq!(stored_row(&dir, "j"), None);
+        assert!(!dir.join("jobs/j").exists());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A submission whose row cannot be stored is taken back whole (its key too), and no later
+    /// write stores it.
+    #[test]
+    fn a_submission_whose_row_fails_is_taken_back() {
+        let (dir, coord) = stored("unstored");
+        let mut c = coord.lock().unwrap();
+        // The key is forgotten in memory only: storing it again breaks the row's UNIQUE key.
+        c.keys.clear();
+        let spec = c.jobs["j"].spec.clone();
+        let job = c.loader().job_from_scene("j2".into(), spec, JobState::Queued, 2, tiny_scene()).unwrap();
+        c.insert_job(job, Some("k"), "h").unwrap();
+        c.set_priority("j", 3).unwrap_err();
+        assert!(c.unsubmit("j2"));
+        assert!(c.status("j2").is_err() && c.idempotent(Some("k"), "h").unwrap().is_none());
+        c.write_rows_now().unwrap();
+        drop(c);
+        assert_eq!((stored_row(&dir, "j"), stored_row(&dir, "j2")), (Some((3, "queued".into())), None));
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     /// Issue 14: the priority was negated to sort, so i32::MIN overflowed and went first.

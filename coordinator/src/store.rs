@@ -3,8 +3,9 @@
 //! each job's partials, checkpoint, status and result); [`MemStore`] keeps job rows in memory
 //! and nothing else, for `furnace render`, whose jobs live as long as the process.
 //!
-//! The coordinator calls the job-row methods under its lock (they are small); every method
-//! that writes or reads a file is called without it.
+//! The coordinator calls no method under its lock: job rows are written in batches by
+//! whichever request needs its change stored (see `state::sync_rows`), and files are read and
+//! written by the requests that need them.
 //!
 //! Layout of a data folder:
 //! - `furnace.db`: jobs (spec, state, idempotency key, request hash) and the boot counter;
@@ -32,6 +33,18 @@ pub struct JobRow {
     pub created: u64,
 }
 
+/// One change to the job rows.
+#[derive(Clone, Debug)]
+pub enum RowOp {
+    /// A new job, with the idempotency key it was submitted with and the hash of the
+    /// request; its folder is made first (a row always has one).
+    Insert { row: JobRow, key: Option<String>, request: String },
+    /// A job's state and spec (its priority) as they are now.
+    Update(JobRow),
+    /// The job is gone; a row that is not there is no error.
+    Delete(String),
+}
+
 /// What the coordinator stores, and where from it restarts.
 pub trait Store: Send + Sync {
     /// Whether anything stored outlives the process. A store that keeps nothing gets no
@@ -45,17 +58,13 @@ pub trait Store: Send + Sync {
     /// Every stored job, oldest first; a row that cannot be read is returned as its id and
     /// the reason.
     fn jobs(&self) -> Result<Vec<Result<JobRow, (String, String)>>, CoordError>;
-    /// Stores a new job (state queued) with the idempotency key it was submitted with and the
-    /// hash of the request, and makes room for its files.
-    fn insert_job(&self, row: &JobRow, key: Option<&str>, request: &str) -> Result<(), CoordError>;
-    fn set_state(&self, id: &str, state: JobState) -> Result<(), CoordError>;
-    fn set_spec(&self, id: &str, spec: &JobSpec) -> Result<(), CoordError>;
-    /// The job an idempotency key names, with the hash of the request it was first used with.
-    fn keyed(&self, key: &str) -> Result<Option<(String, Option<String>)>, CoordError>;
-    /// Removes the job's row. Returns `None` when there was none, else what to remove
-    /// (outside the lock, with [`remove_paths`]): the job's folder, and its bundle and files
-    /// when no other job uses them.
-    fn delete_job(&self, id: &str) -> Result<Option<Vec<PathBuf>>, CoordError>;
+    /// Writes a batch of changes to the job rows at once, in order (a batch written in part
+    /// is rolled back). Returns what to remove for the deleted jobs (with [`remove_paths`]): each one's
+    /// folder, and its bundle and files when no job left uses them.
+    fn write_rows(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError>;
+    /// Every stored idempotency key: the job it names and the hash of the request it was
+    /// first used with (none for rows of earlier versions).
+    fn keys(&self) -> Result<Vec<(String, String, Option<String>)>, CoordError>;
 
     // A job's files.
     /// Stores an accepted partial durably (before it is acknowledged).
@@ -228,6 +237,71 @@ impl DiskStore {
 }
 
 impl DiskStore {
+    /// [`Store::write_rows`] once the new folders are made: one transaction.
+    fn write_rows_in(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError> {
+        let mut db = self.db();
+        let tx = db.transaction()?;
+        let mut deleted = Vec::new();
+        for op in ops {
+            match op {
+                RowOp::Insert { row, key, request } => {
+                    tx.execute(
+                        "INSERT INTO jobs (id, spec, state, idempotency_key, created, request_hash)
+                         VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+                        rusqlite::params![
+                            row.id,
+                            json(&row.spec)?,
+                            row.state.name(),
+                            key,
+                            row.created as i64,
+                            request
+                        ],
+                    )?;
+                }
+                RowOp::Update(row) => {
+                    tx.execute(
+                        "UPDATE jobs SET state = ?1, spec = ?2 WHERE id = ?3",
+                        rusqlite::params![row.state.name(), json(&row.spec)?, row.id],
+                    )?;
+                }
+                RowOp::Delete(id) => {
+                    let spec: Option<String> =
+                        tx.query_row("SELECT spec FROM jobs WHERE id = ?1", [id], |r| r.get(0)).ok();
+                    if tx.execute("DELETE FROM jobs WHERE id = ?1", [id])? > 0 {
+                        let bundle = spec.and_then(|s| serde_json::from_str::<JobSpec>(&s).ok());
+                        deleted.push((id, bundle.map(|s| s.bundle)));
+                    }
+                }
+            }
+        }
+        // What the deleted jobs used and no job left uses goes with them.
+        let others: Vec<Bundle> = {
+            let mut st = tx.prepare("SELECT spec FROM jobs")?;
+            let specs = st.query_map([], |r| r.get::<_, String>(0))?;
+            specs.flatten().filter_map(|s| serde_json::from_str::<JobSpec>(&s).ok()).map(|s| s.bundle).collect()
+        };
+        tx.commit()?;
+        let mut gone = Vec::new();
+        for (id, bundle) in deleted {
+            gone.push(self.job_dir(id));
+            let Some(bundle) = bundle else { continue };
+            let hash = bundle.hash();
+            if !others.iter().any(|b| b.hash() == hash) {
+                gone.push(self.bundle_dir(&hash));
+                gone.push(self.manifest_path(&hash));
+            }
+            for h in bundle.files.values() {
+                if !others.iter().any(|b| b.files.values().any(|o| o == h)) {
+                    gone.push(self.file_path(h));
+                }
+            }
+        }
+        // Jobs deleted together may share files.
+        let mut seen = HashSet::new();
+        gone.retain(|p| seen.insert(p.clone()));
+        Ok(gone)
+    }
+
     /// The bundles and files every stored job uses.
     fn in_use(&self) -> Result<(HashSet<String>, HashSet<String>), CoordError> {
         let db = self.db();
@@ -280,72 +354,34 @@ impl Store for DiskStore {
             .collect())
     }
 
-    fn insert_job(&self, row: &JobRow, key: Option<&str>, request: &str) -> Result<(), CoordError> {
-        // The folder first: a row always has one (a job's files are written only into it).
-        let dir = self.job_dir(&row.id);
-        std::fs::create_dir_all(dir.join("partials"))?;
-        let inserted = self.db().execute(
-            "INSERT INTO jobs (id, spec, state, idempotency_key, created, request_hash)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-            rusqlite::params![row.id, json(&row.spec)?, row.state.name(), key, row.created as i64, request],
-        );
-        if let Err(e) = inserted {
-            std::fs::remove_dir_all(&dir).ok();
-            return Err(e.into());
-        }
-        Ok(())
-    }
-
-    fn set_state(&self, id: &str, state: JobState) -> Result<(), CoordError> {
-        self.db().execute("UPDATE jobs SET state = ?1 WHERE id = ?2", rusqlite::params![state.name(), id])?;
-        Ok(())
-    }
-
-    fn set_spec(&self, id: &str, spec: &JobSpec) -> Result<(), CoordError> {
-        self.db().execute("UPDATE jobs SET spec = ?1 WHERE id = ?2", rusqlite::params![json(spec)?, id])?;
-        Ok(())
-    }
-
-    fn keyed(&self, key: &str) -> Result<Option<(String, Option<String>)>, CoordError> {
-        Ok(self
-            .db()
-            .query_row("SELECT id, request_hash FROM jobs WHERE idempotency_key = ?1", [key], |r| {
-                Ok((r.get(0)?, r.get(1)?))
+    fn write_rows(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError> {
+        // Folders first: a row always has one (a job's files are written only into it).
+        let new: Vec<PathBuf> = ops
+            .iter()
+            .filter_map(|op| match op {
+                RowOp::Insert { row, .. } => Some(self.job_dir(&row.id)),
+                _ => None,
             })
-            .ok())
+            .collect();
+        let written = new
+            .iter()
+            .try_for_each(|d| std::fs::create_dir_all(d.join("partials")))
+            .map_err(CoordError::from)
+            .and_then(|()| self.write_rows_in(ops));
+        if written.is_err() {
+            for d in &new {
+                std::fs::remove_dir_all(d).ok();
+            }
+        }
+        written
     }
 
-    fn delete_job(&self, id: &str) -> Result<Option<Vec<PathBuf>>, CoordError> {
+    fn keys(&self) -> Result<Vec<(String, String, Option<String>)>, CoordError> {
         let db = self.db();
-        let spec: Option<String> =
-            db.query_row("SELECT spec FROM jobs WHERE id = ?1", [id], |r| r.get(0)).ok();
-        if db.execute("DELETE FROM jobs WHERE id = ?1", [id])? == 0 {
-            return Ok(None);
-        }
-        let mut gone = vec![self.job_dir(id)];
-        // Its bundle and stored files too, unless another job uses them.
-        if let Some(bundle) = spec.and_then(|s| serde_json::from_str::<JobSpec>(&s).ok()).map(|s| s.bundle) {
-            let others: Vec<Bundle> = {
-                let mut st = db.prepare("SELECT spec FROM jobs")?;
-                let specs = st.query_map([], |r| r.get::<_, String>(0))?;
-                specs
-                    .flatten()
-                    .filter_map(|s| serde_json::from_str::<JobSpec>(&s).ok())
-                    .map(|s| s.bundle)
-                    .collect()
-            };
-            let hash = bundle.hash();
-            if !others.iter().any(|b| b.hash() == hash) {
-                gone.push(self.bundle_dir(&hash));
-                gone.push(self.manifest_path(&hash));
-            }
-            for h in bundle.files.values() {
-                if !others.iter().any(|b| b.files.values().any(|o| o == h)) {
-                    gone.push(self.file_path(h));
-                }
-            }
-        }
-        Ok(Some(gone))
+        let mut st =
+            db.prepare("SELECT idempotency_key, id, request_hash FROM jobs WHERE idempotency_key IS NOT NULL")?;
+        let keys = st.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?.collect::<Result<_, _>>()?;
+        Ok(keys)
     }
 
     fn save_partial(&self, job: &str, chunk: u32, bytes: &[u8]) -> Result<(), CoordError> {
@@ -591,12 +627,6 @@ impl MemStore {
     fn rows(&self) -> std::sync::MutexGuard<'_, Vec<(JobRow, Option<String>, String)>> {
         self.rows.lock().unwrap_or_else(|e| e.into_inner())
     }
-
-    fn with_row(&self, id: &str, f: impl FnOnce(&mut JobRow)) {
-        if let Some(r) = self.rows().iter_mut().find(|r| r.0.id == id) {
-            f(&mut r.0);
-        }
-    }
 }
 
 impl Store for MemStore {
@@ -609,31 +639,32 @@ impl Store for MemStore {
     fn jobs(&self) -> Result<Vec<Result<JobRow, (String, String)>>, CoordError> {
         Ok(self.rows().iter().map(|r| Ok(r.0.clone())).collect())
     }
-    fn insert_job(&self, row: &JobRow, key: Option<&str>, request: &str) -> Result<(), CoordError> {
-        let mut rows = self.rows();
-        if key.is_some() && rows.iter().any(|r| r.1.as_deref() == key) {
-            return Err(CoordError::Internal("idempotency key stored twice".into()));
+    fn write_rows(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError> {
+        let mut held = self.rows();
+        // All or nothing, as a transaction.
+        let mut rows = held.clone();
+        for op in ops {
+            match op {
+                RowOp::Insert { row, key, request } => {
+                    if key.is_some() && rows.iter().any(|r| r.1 == *key) {
+                        return Err(CoordError::Internal("idempotency key stored twice".into()));
+                    }
+                    rows.push((row.clone(), key.clone(), request.clone()));
+                }
+                RowOp::Update(row) => {
+                    if let Some(r) = rows.iter_mut().find(|r| r.0.id == row.id) {
+                        r.0 = row.clone();
+                    }
+                }
+                RowOp::Delete(id) => rows.retain(|r| r.0.id != *id),
+            }
         }
-        rows.push((row.clone(), key.map(String::from), request.to_string()));
-        Ok(())
+        *held = rows;
+        Ok(Vec::new())
     }
-    fn set_state(&self, id: &str, state: JobState) -> Result<(), CoordError> {
-        self.with_row(id, |r| r.state = state);
-        Ok(())
-    }
-    fn set_spec(&self, id: &str, spec: &JobSpec) -> Result<(), CoordError> {
-        self.with_row(id, |r| r.spec = spec.clone());
-        Ok(())
-    }
-    fn keyed(&self, key: &str) -> Result<Option<(String, Option<String>)>, CoordError> {
+    fn keys(&self) -> Result<Vec<(String, String, Option<String>)>, CoordError> {
         let rows = self.rows();
-        Ok(rows.iter().find(|r| r.1.as_deref() == Some(key)).map(|r| (r.0.id.clone(), Some(r.2.clone()))))
-    }
-    fn delete_job(&self, id: &str) -> Result<Option<Vec<PathBuf>>, CoordError> {
-        let mut rows = self.rows();
-        let before = rows.len();
-        rows.retain(|r| r.0.id != id);
-        Ok((rows.len() < before).then(Vec::new))
+        Ok(rows.iter().filter_map(|r| Some((r.1.clone()?, r.0.id.clone(), Some(r.2.clone())))).collect())
     }
     // Not durable: the coordinator stores no partials or checkpoints here.
     fn save_partial(&self, _: &str, _: u32, _: &[u8]) -> Result<(), CoordError> {
@@ -751,12 +782,19 @@ mod tests {
 
     /// What the coordinator relies on of any store's job rows: order, updates, keys, deletion.
     fn rows_contract(store: &dyn Store) {
-        store.insert_job(&row("b", 2), Some("key"), "h1").unwrap();
-        store.insert_job(&row("a", 1), None, "h2").unwrap();
-        store.set_state("b", JobState::Running).unwrap();
-        let mut spec = row("b", 2).spec;
-        spec.settings.priority = -7;
-        store.set_spec("b", &spec).unwrap();
+        let insert = |id, created, key: Option<&str>, request: &str| RowOp::Insert {
+            row: row(id, created),
+            key: key.map(String::from),
+            request: request.into(),
+        };
+        store.write_rows(&[insert("b", 2, Some("key"), "h1"), insert("a", 1, None, "h2")]).unwrap();
+        let mut b = row("b", 2);
+        b.state = JobState::Running;
+        b.spec.settings.priority = -7;
+        store.write_rows(&[RowOp::Update(b)]).unwrap();
+        // A batch that fails in part changes nothing.
+        let twice = [RowOp::Delete("a".into()), insert("c", 3, Some("key"), "h3")];
+        assert!(store.write_rows(&twice).is_err(), "a key stored twice");
         let jobs: Vec<JobRow> = store.jobs().unwrap().into_iter().map(Result::unwrap).collect();
         let ids: Vec<&str> = jobs.iter().map(|r| r.id.as_str()).collect();
         if store.durable() {
@@ -766,11 +804,9 @@ mod tests {
         }
         let b = jobs.iter().find(|r| r.id == "b").unwrap();
         assert_eq!((b.state, b.spec.settings.priority), (JobState::Running, -7));
-        assert_eq!(store.keyed("key").unwrap(), Some(("b".into(), Some("h1".into()))));
-        assert_eq!(store.keyed("other").unwrap(), None);
-        assert!(store.delete_job("b").unwrap().is_some());
-        assert!(store.delete_job("b").unwrap().is_none());
-        assert_eq!(store.keyed("key").unwrap(), None);
+        assert_eq!(store.keys().unwrap(), [("key".into(), "b".into(), Some("h1".into()))]);
+        store.write_rows(&[RowOp::Delete("b".into()), RowOp::Delete("b".into())]).unwrap();
+        assert_eq!(store.keys().unwrap(), []);
         assert_eq!(store.jobs().unwrap().len(), 1);
     }
 
@@ -807,7 +843,7 @@ mod tests {
         std::fs::create_dir_all(dir.join("jobs/orphan/partials")).unwrap();
         let mut job = row("j", 1);
         job.spec.bundle.files.insert("s.xml".into(), used.clone());
-        s.insert_job(&job, None, "h").unwrap();
+        s.write_rows(&[RowOp::Insert { row: job, key: None, request: "h".into() }]).unwrap();
         let hour = std::time::Duration::from_secs(3600);
         assert_eq!(s.collect_garbage(hour).unwrap(), 0, "recent files are kept");
         assert_eq!(s.collect_garbage(std::time::Duration::ZERO).unwrap(), 4);
@@ -815,7 +851,7 @@ mod tests {
         assert!(s.has_file(&used) && !s.has_file(&unused));
         assert!(!dir.join("files/not-a-hash").exists() && !dir.join("bundles/abandoned").exists());
         // Once its job is deleted, its files go too.
-        remove_paths(&s.delete_job("j").unwrap().unwrap());
+        remove_paths(&s.write_rows(&[RowOp::Delete("j".into())]).unwrap());
         assert!(!s.has_file(&used));
         std::fs::remove_dir_all(&dir).ok();
     }
@@ -838,7 +874,7 @@ mod tests {
     fn the_disk_store_keeps_a_jobs_files_consistent() {
         let dir = scratch("files");
         let s = DiskStore::open(&dir).unwrap();
-        s.insert_job(&row("j", 1), None, "h").unwrap();
+        s.write_rows(&[RowOp::Insert { row: row("j", 1), key: None, request: "h".into() }]).unwrap();
         for c in [3, 1, 2] {
             s.save_partial("j", c, &[c as u8]).unwrap();
         }
@@ -872,7 +908,7 @@ mod tests {
         );
         // A write racing the job's deletion fails; it does not bring the folder back.
         let s = DiskStore::open(&dir).unwrap();
-        let gone = s.delete_job("j").unwrap().unwrap();
+        let gone = s.write_rows(&[RowOp::Delete("j".into())]).unwrap();
         remove_paths(&gone);
         assert!(s.save_partial("j", 4, b"late").is_err());
         assert!(s.save_checkpoint("j", b"late", &[], None).is_err());
