@@ -278,7 +278,11 @@ impl DiskStore {
         let others: Vec<Bundle> = {
             let mut st = tx.prepare("SELECT spec FROM jobs")?;
             let specs = st.query_map([], |r| r.get::<_, String>(0))?;
-            specs.flatten().filter_map(|s| serde_json::from_str::<JobSpec>(&s).ok()).map(|s| s.bundle).collect()
+            specs
+                .flatten()
+                .filter_map(|s| serde_json::from_str::<JobSpec>(&s).ok())
+                .map(|s| s.bundle)
+                .collect()
         };
         tx.commit()?;
         let mut gone = Vec::new();
@@ -378,8 +382,9 @@ impl Store for DiskStore {
 
     fn keys(&self) -> Result<Vec<(String, String, Option<String>)>, CoordError> {
         let db = self.db();
-        let mut st =
-            db.prepare("SELECT idempotency_key, id, request_hash FROM jobs WHERE idempotency_key IS NOT NULL")?;
+        let mut st = db.prepare(
+            "SELECT idempotency_key, id, request_hash FROM jobs WHERE idempotency_key IS NOT NULL",
+        )?;
         let keys = st.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?.collect::<Result<_, _>>()?;
         Ok(keys)
     }
