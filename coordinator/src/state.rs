@@ -1315,17 +1315,20 @@ impl Snapshot {
         let header =
             serde_json::to_vec(&CheckpointHeader { merged: self.ids.clone(), skipped: self.skipped.clone() })
                 .map_err(|e| CoordError::Internal(e.to_string()))?;
-        let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
-        bytes.extend_from_slice(&header);
-        bytes.extend_from_slice(&encode_chunk(&self.accum, Some(&self.stats)));
+        // Encoded as it is written: no copy of the accumulation is made.
+        let write = |out: &mut dyn std::io::Write| {
+            out.write_all(&(header.len() as u64).to_le_bytes())?;
+            out.write_all(&header)?;
+            furnace_proto::write_chunk(&self.accum, Some(&self.stats), out)
+        };
         let result = self.status.as_ref().map(|_| self.accum.develop());
-        store.save_checkpoint(&self.job, &bytes, &self.new, result.as_ref())?;
+        let size = store.save_checkpoint(&self.job, &write, &self.new, result.as_ref())?;
         if let Some(st) = &self.status {
             store.save_status(&self.job, st)?;
         }
         metrics::histogram!("furnace_checkpoint_duration_seconds").record(t.elapsed().as_secs_f64());
-        metrics::counter!("furnace_checkpoint_bytes_total").increment(bytes.len() as u64);
-        tracing::info!(job = %self.job, bytes = bytes.len(), "checkpoint written in {:.3} s", t.elapsed().as_secs_f64());
+        metrics::counter!("furnace_checkpoint_bytes_total").increment(size);
+        tracing::info!(job = %self.job, bytes = size, "checkpoint written in {:.3} s", t.elapsed().as_secs_f64());
         Ok(())
     }
 }

@@ -69,15 +69,16 @@ pub trait Store: Send + Sync {
     // A job's files.
     /// Stores an accepted partial durably (before it is acknowledged).
     fn save_partial(&self, job: &str, chunk: u32, bytes: &[u8]) -> Result<(), CoordError>;
-    /// Stores a checkpoint (its bytes replace the previous one), then drops the partials it
-    /// now holds (`merged`); with `result`, also the finished job's image.
+    /// Stores a checkpoint, written by `write` as it is stored (it replaces the previous one),
+    /// then drops the partials it now holds (`merged`); with `result`, also the finished job's
+    /// image. Returns the checkpoint's size in bytes.
     fn save_checkpoint(
         &self,
         job: &str,
-        bytes: &[u8],
+        write: &dyn Fn(&mut dyn Write) -> std::io::Result<()>,
         merged: &[u32],
         result: Option<&Image>,
-    ) -> Result<(), CoordError>;
+    ) -> Result<u64, CoordError>;
     /// The last checkpoint's bytes, if there is one.
     fn checkpoint(&self, job: &str) -> Option<Vec<u8>>;
     /// The chunks whose stored partials are not in the checkpoint, in order.
@@ -396,21 +397,20 @@ impl Store for DiskStore {
     fn save_checkpoint(
         &self,
         job: &str,
-        bytes: &[u8],
+        write: &dyn Fn(&mut dyn Write) -> std::io::Result<()>,
         merged: &[u32],
         result: Option<&Image>,
-    ) -> Result<(), CoordError> {
-        write_into(&self.job_dir(job).join("checkpoint"), bytes)?;
+    ) -> Result<u64, CoordError> {
+        let size = write_with(&self.job_dir(job).join("checkpoint"), |f| write(f))?;
         for &id in merged {
             std::fs::remove_file(self.partial_path(job, id)).ok();
         }
         if let Some(img) = result {
             // Written atomically and durably (temporary file, fsync, rename) before the final
             // status, which counts only beside a result.
-            let bytes = img.exr_bytes().map_err(|e| CoordError::Internal(format!("result: {e}")))?;
-            write_into(&self.result_path(job), &bytes)?;
+            write_with(&self.result_path(job), |f| img.write_exr_to(f).map_err(std::io::Error::other))?;
         }
-        Ok(())
+        Ok(size)
     }
 
     fn checkpoint(&self, job: &str) -> Option<Vec<u8>> {
@@ -675,8 +675,14 @@ impl Store for MemStore {
     fn save_partial(&self, _: &str, _: u32, _: &[u8]) -> Result<(), CoordError> {
         Ok(())
     }
-    fn save_checkpoint(&self, _: &str, _: &[u8], _: &[u32], _: Option<&Image>) -> Result<(), CoordError> {
-        Ok(())
+    fn save_checkpoint(
+        &self,
+        _: &str,
+        _: &dyn Fn(&mut dyn Write) -> std::io::Result<()>,
+        _: &[u32],
+        _: Option<&Image>,
+    ) -> Result<u64, CoordError> {
+        Ok(0)
     }
     fn checkpoint(&self, _: &str) -> Option<Vec<u8>> {
         None
@@ -750,24 +756,38 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 /// folder is there, so a write that races the job's deletion fails instead of bringing the
 /// folder back.
 fn write_into(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    write_with(path, |f| f.write_all(bytes)).map(drop)
+}
+
+/// [`write_into`], the file written by `write` through a buffer (nothing else held in memory);
+/// returns its size.
+fn write_with(
+    path: &Path,
+    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
+) -> std::io::Result<u64> {
     let dir = path.parent().unwrap_or(Path::new("."));
     // Unique, so that concurrent writes of one path never share a temporary file.
     static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
     let tmp = dir.join(format!(".{name}.{}.{n}.tmp", std::process::id()));
-    let written = std::fs::File::create(&tmp)
-        .and_then(|mut f| f.write_all(bytes).and_then(|_| f.sync_all()))
-        .and_then(|_| std::fs::rename(&tmp, path));
-    if let Err(e) = written {
+    let written = std::fs::File::create(&tmp).and_then(|f| {
+        let mut out = std::io::BufWriter::with_capacity(1 << 16, f);
+        write(&mut out)?;
+        let f = out.into_inner().map_err(|e| e.into_error())?;
+        f.sync_all()?;
+        let size = f.metadata()?.len();
+        std::fs::rename(&tmp, path)?;
+        Ok(size)
+    });
+    if written.is_err() {
         // A full disk or the like: no temporary file is left behind.
         std::fs::remove_file(&tmp).ok();
-        return Err(e);
     }
     if let Ok(d) = std::fs::File::open(dir) {
         d.sync_all().ok();
     }
-    Ok(())
+    written
 }
 
 #[cfg(test)]
@@ -819,6 +839,11 @@ mod tests {
         let d = std::env::temp_dir().join(format!("furnace-store-{name}-{}", std::process::id()));
         std::fs::remove_dir_all(&d).ok();
         d
+    }
+
+    /// A checkpoint writer of fixed bytes.
+    fn bytes(b: &'static [u8]) -> impl Fn(&mut dyn Write) -> std::io::Result<()> {
+        move |out| out.write_all(b)
     }
 
     fn s_status() -> JobStatus {
@@ -884,7 +909,7 @@ mod tests {
             s.save_partial("j", c, &[c as u8]).unwrap();
         }
         assert_eq!(s.partials("j"), [1, 2, 3]);
-        s.save_checkpoint("j", b"cp", &[1, 3], None).unwrap();
+        assert_eq!(s.save_checkpoint("j", &bytes(b"cp"), &[1, 3], None).unwrap(), 2);
         assert_eq!((s.partials("j"), s.checkpoint("j")), (vec![2], Some(b"cp".to_vec())));
         assert_eq!(s.partial("j", 2).unwrap(), [2]);
         assert_eq!(s.quarantine("j", Some(2)), "2.zst");
@@ -895,7 +920,7 @@ mod tests {
         assert!(s.final_status("j").is_none(), "no result yet");
         s.save_checkpoint(
             "j",
-            b"cp2",
+            &bytes(b"cp2"),
             &[],
             Some(&Image { width: 1, height: 1, data: vec![Default::default()] }),
         )
@@ -916,7 +941,7 @@ mod tests {
         let gone = s.write_rows(&[RowOp::Delete("j".into())]).unwrap();
         remove_paths(&gone);
         assert!(s.save_partial("j", 4, b"late").is_err());
-        assert!(s.save_checkpoint("j", b"late", &[], None).is_err());
+        assert!(s.save_checkpoint("j", &bytes(b"late"), &[], None).is_err());
         assert!(s.save_status("j", &s_status()).is_err());
         assert!(!dir.join("jobs/j").exists());
         std::fs::remove_dir_all(&dir).ok();

@@ -31,18 +31,20 @@ impl Image {
 
     /// The image as an RGB f32 EXR file's bytes. Never spawns threads.
     pub fn exr_bytes(&self) -> Result<Vec<u8>, exr::error::Error> {
+        let mut out = std::io::Cursor::new(Vec::new());
+        self.write_exr_to(&mut out)?;
+        Ok(out.into_inner())
+    }
+
+    /// Writes RGB f32 EXR into `out` (a buffered file, say), reading the pixels as it goes.
+    pub fn write_exr_to(&self, out: impl std::io::Write + std::io::Seek) -> Result<(), exr::error::Error> {
         use exr::prelude::*;
         let w = self.width as usize;
         let channels = SpecificChannels::rgb(|pos: Vec2<usize>| {
             let c = self.data[pos.y() * w + pos.x()];
             (c.x, c.y, c.z)
         });
-        let mut out = std::io::Cursor::new(Vec::new());
-        Image::from_channels((w, self.height as usize), channels)
-            .write()
-            .non_parallel()
-            .to_buffered(&mut out)?;
-        Ok(out.into_inner())
+        Image::from_channels((w, self.height as usize), channels).write().non_parallel().to_buffered(out)
     }
 
     /// Writes RGB f32 EXR, atomically (temporary file, then rename). Never spawns threads.

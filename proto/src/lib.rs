@@ -20,7 +20,7 @@ mod link;
 mod partial;
 pub use link::{Link, Uploaded};
 pub use partial::{
-    decode_chunk, decode_partial, encode_chunk, encode_partial, partial_size_limit, PartialError,
+    decode_chunk, decode_partial, encode_chunk, encode_partial, partial_size_limit, write_chunk, PartialError,
 };
 
 /// The API's path prefix.

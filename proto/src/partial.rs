@@ -70,39 +70,94 @@ pub fn decode_partial(bytes: &[u8], max_bytes: usize) -> std::result::Result<Acc
 
 /// Encodes `acc` and, when given, the render statistics of the work that made it.
 pub fn encode_chunk(acc: &Accum, stats: Option<&crate::RenderStats>) -> Vec<u8> {
-    let names = channel_names();
-    let mut planes: Vec<Vec<u32>> = (0..WORDS).map(|_| Vec::with_capacity(acc.pixels.len())).collect();
-    for p in &acc.pixels {
-        for (plane, w) in planes.iter_mut().zip(pixel_words(p)) {
-            plane.push(w);
+    let mut out = Vec::new();
+    write_chunk(acc, stats, &mut out).expect("writing to memory cannot fail");
+    out
+}
+
+/// [`encode_chunk`] into `out`, a line at a time: besides `acc`, nothing but one line of it and
+/// the compressor's window is held (a checkpoint of a large film is written straight to disk).
+pub fn write_chunk(
+    acc: &Accum,
+    stats: Option<&crate::RenderStats>,
+    out: &mut dyn std::io::Write,
+) -> std::io::Result<()> {
+    let mut z = zstd::Encoder::new(out, 1)?;
+    write_exr(acc, stats, &mut std::io::BufWriter::with_capacity(1 << 16, &mut z))?;
+    z.finish()?;
+    Ok(())
+}
+
+/// Writes the uncompressed, scan-line EXR of the format above: the header (the attributes an
+/// OpenEXR reader needs, in the order the `exr` crate writes them), the offset table, then one
+/// block a line, each channel's words in channel-name order.
+fn write_exr(
+    acc: &Accum,
+    stats: Option<&crate::RenderStats>,
+    out: &mut impl std::io::Write,
+) -> std::io::Result<()> {
+    fn attr(h: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]) {
+        for s in [name, kind] {
+            h.extend_from_slice(s.as_bytes());
+            h.push(0);
         }
+        h.extend_from_slice(&(value.len() as i32).to_le_bytes());
+        h.extend_from_slice(value);
     }
-    let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
-        names.iter().zip(planes).map(|(n, v)| AnyChannel::new(n.as_str(), FlatSamples::U32(v))).collect();
-    let mut attributes = LayerAttributes {
-        layer_position: Vec2(acc.x0 as i32, acc.y0 as i32),
-        ..LayerAttributes::named("partial")
-    };
+    let i32s = |v: &[i32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let (w, h) = (acc.width as usize, acc.height as usize);
+    let window = i32s(&[
+        acc.x0 as i32,
+        acc.y0 as i32,
+        (acc.x0 + acc.width) as i32 - 1,
+        (acc.y0 + acc.height) as i32 - 1,
+    ]);
+    // The channels in the order EXR stores them, each with its word's index in a pixel.
+    let names = channel_names();
+    let mut order: Vec<(&String, usize)> = names.iter().zip(0..).collect();
+    order.sort();
+    let mut channels = Vec::new();
+    for (name, _) in &order {
+        channels.extend_from_slice(name.as_bytes());
+        // Unsigned int, linear, three reserved bytes, sampled every pixel.
+        channels.extend_from_slice(&[0, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0]);
+    }
+    channels.push(0);
+    let mut head = vec![0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0];
+    attr(&mut head, "chunkCount", "int", &i32s(&[h as i32]));
+    attr(&mut head, "channels", "chlist", &channels);
+    attr(&mut head, "compression", "compression", &[0]);
+    attr(&mut head, "lineOrder", "lineOrder", &[0]);
+    attr(&mut head, "displayWindow", "box2i", &window);
+    attr(&mut head, "pixelAspectRatio", "float", &1f32.to_le_bytes());
+    attr(&mut head, "screenWindowCenter", "v2f", &[0; 8]);
+    attr(&mut head, "screenWindowWidth", "float", &1f32.to_le_bytes());
+    attr(&mut head, "dataWindow", "box2i", &window);
+    attr(&mut head, "type", "string", b"scanlineimage");
+    attr(&mut head, "name", "string", b"partial");
     let d = acc.dropped;
-    let tallies = format!("{} {} {}", d.nan, d.infinite, d.too_bright);
-    attributes.other.insert(Text::new_or_panic(DROPPED), AttributeValue::Text(Text::new_or_panic(tallies)));
+    attr(&mut head, DROPPED, "string", format!("{} {} {}", d.nan, d.infinite, d.too_bright).as_bytes());
     if let Some(s) = stats {
-        let json = serde_json::to_string(s).expect("statistics serialise");
-        attributes.other.insert(Text::new_or_panic(STATS), AttributeValue::Text(Text::new_or_panic(json)));
+        attr(&mut head, STATS, "string", serde_json::to_string(s).expect("statistics serialise").as_bytes());
     }
-    let layer = Layer::new(
-        (acc.width as usize, acc.height as usize),
-        attributes,
-        Encoding::UNCOMPRESSED,
-        AnyChannels::sort(channels),
-    );
-    let mut exr = Vec::new();
-    Image::from_layer(layer)
-        .write()
-        .non_parallel()
-        .to_buffered(Cursor::new(&mut exr))
-        .expect("writing an EXR to memory cannot fail");
-    zstd::bulk::compress(&exr, 1).expect("zstd compresses to memory")
+    head.push(0);
+    out.write_all(&head)?;
+    let block = 8 + w * WORDS * 4;
+    for y in 0..h {
+        out.write_all(&((head.len() + h * 8 + y * block) as u64).to_le_bytes())?;
+    }
+    let mut line = Vec::with_capacity(block);
+    for (y, row) in acc.pixels.chunks_exact(w.max(1)).enumerate().take(h) {
+        line.clear();
+        line.extend_from_slice(&(acc.y0 as i32 + y as i32).to_le_bytes());
+        line.extend_from_slice(&((w * WORDS * 4) as i32).to_le_bytes());
+        let words: Vec<[u32; WORDS]> = row.iter().map(pixel_words).collect();
+        for &(_, k) in &order {
+            line.extend(words.iter().flat_map(|p| p[k].to_le_bytes()));
+        }
+        out.write_all(&line)?;
+    }
+    out.flush()
 }
 
 /// Checks the EXR header before anything is decoded: one uncompressed, flat, scan-line
@@ -245,6 +300,56 @@ mod tests {
         assert_eq!(bytes, encode_partial(&acc), "same accumulation, same bytes");
         let back = decode_partial(&bytes, 1 << 20).unwrap();
         assert!(back == acc);
+    }
+
+    /// The EXR the `exr` crate writes for a partial (what `encode_chunk` was before it wrote
+    /// the file itself, a line at a time).
+    fn crate_exr(acc: &Accum) -> Vec<u8> {
+        let mut names = channel_names();
+        let mut planes: Vec<Vec<u32>> = vec![Vec::new(); WORDS];
+        for p in &acc.pixels {
+            for (plane, w) in planes.iter_mut().zip(pixel_words(p)) {
+                plane.push(w);
+            }
+        }
+        let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> = names
+            .drain(..)
+            .zip(planes)
+            .map(|(n, v)| AnyChannel::new(n.as_str(), FlatSamples::U32(v)))
+            .collect();
+        let mut attributes = LayerAttributes {
+            layer_position: Vec2(acc.x0 as i32, acc.y0 as i32),
+            ..LayerAttributes::named("partial")
+        };
+        let d = acc.dropped;
+        let tallies = Text::new_or_panic(format!("{} {} {}", d.nan, d.infinite, d.too_bright));
+        attributes.other.insert(Text::new_or_panic(DROPPED), AttributeValue::Text(tallies));
+        let size = (acc.width as usize, acc.height as usize);
+        let layer = Layer::new(size, attributes, Encoding::UNCOMPRESSED, AnyChannels::sort(channels));
+        let mut exr = Vec::new();
+        Image::from_layer(layer).write().non_parallel().to_buffered(Cursor::new(&mut exr)).unwrap();
+        exr
+    }
+
+    /// The partial written a line at a time is the very file the `exr` crate writes, and reads.
+    #[test]
+    fn partials_written_by_line_are_the_exr_crates_bytes() {
+        for (x0, y0, w, h) in [(0, 0, 1, 1), (64, 128, 3, 2), (5, 7, 17, 9), (0, 3, 1, 40)] {
+            let mut acc = Accum::new(x0, y0, w, h);
+            for (i, p) in acc.pixels.iter_mut().enumerate() {
+                p.rgb = [i as i128 - 7, (i as i128) << 90, -(i as i128) << 40];
+                p.weight = i as i128 * 3;
+                p.lum2 = i128::MIN + i as i128;
+                p.count = (i as u64) << 33 | 5;
+            }
+            acc.dropped.too_bright = 3;
+            let mut ours = Vec::new();
+            write_exr(&acc, None, &mut ours).unwrap();
+            assert!(ours == crate_exr(&acc), "{w} x {h} at {x0}, {y0}");
+            let stats = crate::RenderStats { rays: 42, ..Default::default() };
+            let (back, st) = decode_chunk(&encode_chunk(&acc, Some(&stats)), 1 << 20).unwrap();
+            assert!(back == acc && st == Some(stats));
+        }
     }
 
     #[test]
