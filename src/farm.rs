@@ -56,6 +56,11 @@ pub struct ServeArgs {
     /// a submission beyond it is refused with 503.
     #[arg(long, default_value_t = 8.0)]
     pub max_job_memory_gb: f64,
+    /// Megabytes a submitted scene may take to load (textures, meshes, curves and what their
+    /// loaders hold, estimated before each is read); a scene over it is refused (422). Workers
+    /// have the same setting: keep theirs at least this.
+    #[arg(long, default_value_t = furnace_core::FARM_SCENE_BYTES >> 20)]
+    pub max_scene_memory_mb: u64,
 }
 
 #[derive(Args)]
@@ -85,6 +90,10 @@ pub struct WorkerArgs {
     /// `furnace probe --file`).
     #[arg(long, env = "FURNACE_HEALTH_FILE")]
     pub health_file: Option<PathBuf>,
+    /// Megabytes a job's scene may take to load (BVH included); a scene over it fails its
+    /// chunks on this worker.
+    #[arg(long, default_value_t = furnace_core::FARM_SCENE_BYTES >> 20)]
+    pub max_scene_memory_mb: u64,
 }
 
 #[derive(Args)]
@@ -195,6 +204,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
     coord.evict_paused_after = Duration::from_secs_f64(a.evict_paused_minutes.clamp(0.0, 1e6) * 60.0);
     coord.max_job_bytes = (a.max_job_memory_gb.clamp(0.0, 1e6) * 1e9) as usize;
+    coord.max_scene_bytes = a.max_scene_memory_mb.saturating_mul(1 << 20);
     // Local workers take the scene the coordinator loaded to check the job.
     coord.keep_scenes = a.local_workers > 0;
     let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone())
@@ -251,6 +261,7 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
     let cache = a.cache.unwrap_or_else(furnace_worker::default_cache_dir);
     let mut link = furnace_worker::HttpLink::new(&a.coordinator, a.token, cache)?;
     link.health_file = a.health_file;
+    link.max_scene_bytes = a.max_scene_memory_mb.saturating_mul(1 << 20);
     let cfg = furnace_worker::WorkerConfig {
         link: Arc::new(link),
         threads: a.threads.unwrap_or(0),

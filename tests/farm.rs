@@ -588,9 +588,17 @@ fn chunks_too_big_to_upload_and_jobs_over_the_memory_cap_are_refused() {
     let mut c = coord.lock().unwrap();
     c.submit(spec(&small), None).unwrap();
     c.submit(spec(&JobSettings { seed: 1, ..small.clone() }), None).unwrap();
-    let e = c.submit(spec(&JobSettings { seed: 2, ..small }), None).unwrap_err();
+    let e = c.submit(spec(&JobSettings { seed: 2, ..small.clone() }), None).unwrap_err();
     assert!(matches!(&e, CoordError::Busy(m) if m.contains("--max-job-memory-gb")), "{e:?}");
     assert_eq!(c.job_ids().len(), 2);
+    // A scene that needs more memory to load than a scene may take is refused, naming the
+    // setting; the coordinator builds no BVH, yet counts it.
+    c.max_job_bytes = 8 << 30;
+    c.max_scene_bytes = scene.load_estimate - 1;
+    let e = c.submit(spec(&JobSettings { seed: 3, ..small.clone() }), None).unwrap_err();
+    assert!(matches!(&e, CoordError::Unrenderable(m) if m.contains("--max-scene-memory-mb")), "{e:?}");
+    c.max_scene_bytes = scene.load_estimate;
+    c.submit(spec(&JobSettings { seed: 3, ..small }), None).unwrap();
     drop(c);
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use furnace_core::{Accum, Scene};
+use furnace_core::{Accum, LoadLimits, Scene};
 use furnace_proto::{
     chunk_plan, decode_chunk, encode_chunk, Bundle, JobSettings, JobSpec, JobState, JobStatus, Lease,
     RenderStats,
@@ -70,6 +70,9 @@ pub struct Coordinator {
     /// accumulation (about a second for 1920 x 1080 here); between them, a restart replays the
     /// stored partials.
     pub checkpoint_interval: Duration,
+    /// Most memory a submitted scene may take to load (estimated as it loads; see
+    /// [`LoadLimits`]); over it, the submission is refused (422).
+    pub max_scene_bytes: u64,
     workers: BTreeMap<String, WorkerSeen>,
     /// When the registry was last swept of workers silent for [`FORGET_WORKER`].
     pruned: Option<Instant>,
@@ -125,28 +128,38 @@ impl Picture {
 struct Loader {
     store: Arc<dyn Store>,
     keep_scenes: bool,
+    /// Most memory a scene may take to load.
+    max_scene_bytes: u64,
     /// Largest decompressed partial accepted: no chunk may need more.
     max_partial: usize,
 }
 
 impl Loader {
-    /// A new job for a submitted spec: its bundle laid out, its scene loaded and checked.
-    fn submitted(&self, spec: JobSpec, key: Option<&str>) -> Result<Job, CoordError> {
+    /// A new job for a submitted spec: its bundle laid out, its scene loaded and checked
+    /// (given up at `deadline`).
+    fn submitted(
+        &self,
+        spec: JobSpec,
+        key: Option<&str>,
+        deadline: Option<Instant>,
+    ) -> Result<Job, CoordError> {
         static SUBMISSIONS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let created = now_secs();
         let n = SUBMISSIONS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos());
         let seed = format!("{}-{nanos:?}-{key:?}-{n}-{}", spec.bundle.hash(), std::process::id());
         let id = blake3::hash(seed.as_bytes()).to_hex()[..16].to_string();
-        self.new_job(id, spec, JobState::Queued, created)
+        self.new_job(id, spec, JobState::Queued, created, deadline)
     }
 
     /// Loads the bundle's scene from where the store lays it out; errors name files by their
     /// bundle paths, the client's own, not by this host's.
-    fn load_bundle(&self, b: &Bundle) -> Result<Scene, CoordError> {
+    fn load_bundle(&self, b: &Bundle, deadline: Option<Instant>) -> Result<Scene, CoordError> {
         b.validate().map_err(CoordError::Invalid)?;
+        // The BVH only for workers in this process: checking and planning need none.
+        let limits = LoadLimits { max_bytes: self.max_scene_bytes, deadline, accel: self.keep_scenes };
         self.store.load_bundle(b, &|dir: &Path| {
-            Scene::load(&dir.join(&b.scene), &[]).map_err(|e| {
+            Scene::load_with(&dir.join(&b.scene), &[], &limits).map_err(|e| {
                 let inside = format!("{}/", dir.display());
                 CoordError::Unrenderable(format!(
                     "the scene cannot be rendered: {}",
@@ -156,8 +169,15 @@ impl Loader {
         })
     }
 
-    fn new_job(&self, id: String, spec: JobSpec, state: JobState, created: u64) -> Result<Job, CoordError> {
-        let scene = self.load_bundle(&spec.bundle)?;
+    fn new_job(
+        &self,
+        id: String,
+        spec: JobSpec,
+        state: JobState,
+        created: u64,
+        deadline: Option<Instant>,
+    ) -> Result<Job, CoordError> {
+        let scene = self.load_bundle(&spec.bundle, deadline)?;
         self.job_from_scene(id, spec, state, created, Arc::new(scene))
     }
 
@@ -223,7 +243,7 @@ impl Loader {
     /// restart, or when a job set aside is resumed); a
     /// stored file that cannot be used is set aside and its chunks render again.
     fn restore(&self, max_partial: usize, row: JobRow) -> Result<Job, CoordError> {
-        let mut job = self.new_job(row.id, row.spec, row.state, row.created)?;
+        let mut job = self.new_job(row.id, row.spec, row.state, row.created, None)?;
         let id = job.id.clone();
         if let Some(bytes) = self.store.checkpoint(&id) {
             let n = job.plan.len();
@@ -339,6 +359,7 @@ impl Coordinator {
             checkpoint_interval: Duration::from_secs(10),
             evict_paused_after: Duration::from_secs(600),
             max_job_bytes: 8 << 30,
+            max_scene_bytes: furnace_core::FARM_SCENE_BYTES,
             workers: BTreeMap::new(),
             pruned: None,
             keys: HashMap::new(),
@@ -407,7 +428,12 @@ impl Coordinator {
     }
 
     fn loader(&self) -> Loader {
-        Loader { store: self.store.clone(), keep_scenes: self.keep_scenes, max_partial: self.max_partial }
+        Loader {
+            store: self.store.clone(),
+            keep_scenes: self.keep_scenes,
+            max_scene_bytes: self.max_scene_bytes,
+            max_partial: self.max_partial,
+        }
     }
 
     /// The job an idempotency key already names.
@@ -436,7 +462,7 @@ impl Coordinator {
         if let Some(id) = self.idempotent(key, &request)? {
             return Ok((id, false));
         }
-        let job = self.loader().submitted(spec, key)?;
+        let job = self.loader().submitted(spec, key, None)?;
         let id = self.insert_job(job, key, &request)?;
         if let Err(e) = self.write_rows_now() {
             self.unsubmit(&id);
@@ -1250,13 +1276,15 @@ pub fn submit(
         }
         c.loader()
     };
-    let job = loader.submitted(spec, key)?;
+    // A load past the deadline stops there (its error says so): either way, nothing is submitted.
+    let job = loader.submitted(spec, key, deadline);
     if deadline.is_some_and(|d| Instant::now() > d) {
         return Err(CoordError::TooLarge(format!(
             "the scene took {:.1} s to load, longer than the request may take; nothing was submitted",
             started.elapsed().as_secs_f64()
         )));
     }
+    let job = job?;
     let id = {
         let mut c = lock();
         // A submission with the same key that finished meanwhile wins.

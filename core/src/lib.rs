@@ -25,4 +25,4 @@ pub use plan::RenderPlan;
 pub use render::{
     accum_rect, plan_regions, render_image, render_region, render_region_parallel_until, Region,
 };
-pub use scene::{Scene, SceneError};
+pub use scene::{LoadLimits, Scene, SceneError, FARM_SCENE_BYTES};

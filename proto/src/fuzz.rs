@@ -41,7 +41,7 @@ pub fn scene_xml(data: &[u8]) {
     let Ok(text) = std::str::from_utf8(data) else { return };
     let path = asset_dir().join("scene.xml");
     if let Ok(doc) = xml::parse_str(text, &path, &[]) {
-        let _ = build::build(&doc);
+        let _ = build::build(&doc, &Default::default());
     }
 }
 

@@ -207,6 +207,8 @@ pub struct HttpLink {
     /// A file that holds the Unix time of the last answer from the coordinator (rewritten at
     /// most every 5 s), for container health checks (`furnace probe --file`).
     pub health_file: Option<PathBuf>,
+    /// Most memory a job's scene may take to load (see `furnace_core::LoadLimits`).
+    pub max_scene_bytes: u64,
     health_written: Mutex<Option<std::time::Instant>>,
 }
 
@@ -230,6 +232,7 @@ impl HttpLink {
             scenes,
             wait: Duration::from_secs(2),
             health_file: None,
+            max_scene_bytes: furnace_core::FARM_SCENE_BYTES,
             health_written,
         })
     }
@@ -310,7 +313,8 @@ impl HttpLink {
             let dst = dir.join(path);
             write_file(&dst, &bytes).map_err(|e| cache_err(&dst, e))?;
         }
-        let scene = Scene::load(&dir.join(&bundle.scene), &[]).map_err(|e| e.to_string());
+        let limits = furnace_core::LoadLimits { max_bytes: self.max_scene_bytes, ..Default::default() };
+        let scene = Scene::load_with(&dir.join(&bundle.scene), &[], &limits).map_err(|e| e.to_string());
         std::fs::remove_dir_all(&dir).ok();
         scene
     }

@@ -40,8 +40,88 @@ pub fn check_film_size(width: u32, height: u32) -> Result<(), String> {
     Ok(())
 }
 
+// What a load holds, estimated before each part is read. Measured with a counting allocator
+// (docs/BENCHMARKS.md, "Scene loading: memory"): a 7.3 MB scene of 40,000 spheres peaks at 16
+// bytes per byte of XML; a 4096 x 4096 PNG at 27 bytes a texel; OBJ at 7.1 and curve files at
+// 3.5 bytes per byte of file, PLY at 17 (text) to 29 (binary); the BVH's build at 344 bytes a
+// primitive, keeping 54 (triangles) or 16 (curve segments).
+/// What a load holds whatever the scene.
+const BASE: u64 = 1 << 20;
+/// What the XML parser holds per byte of the scene file (the text, the tree, positions), and
+/// keeps while the scene is built.
+pub(crate) const XML_PER_BYTE: u64 = 20;
+/// What a texel costs while its image is read and decoded: the file, the decoder's buffer and
+/// the linear copy.
+const TEXEL_LOAD: u64 = 32;
+/// What a texel keeps: linear RGB, and the pyramid's levels when a filter reads them.
+const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
+const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
+/// What an environment map's sampling tables keep per texel (luminance and a CDF entry).
+const ENVMAP_TEXEL: u64 = 16;
+/// What the OBJ and curve loaders hold per byte of their file while parsing.
+const PARSE_PER_BYTE: u64 = 12;
+/// What the PLY loader holds per byte of its file (its parser makes a map per element).
+const PLY_PER_BYTE: u64 = 40;
+/// What building the BVH holds at its peak per primitive, and what it keeps.
+const BVH_BUILD_PER_PRIM: u64 = 384;
+const BVH_KEPT_PER_PRIM: u64 = 64;
+
+/// A scene's load within its [`LoadLimits`](super::LoadLimits): the memory counted so far and
+/// the deadline.
+pub(crate) struct Budget {
+    limits: super::LoadLimits,
+    kept: u64,
+    /// The most the load has been estimated to hold at once.
+    peak: u64,
+}
+
+impl Budget {
+    pub(crate) fn new(limits: &super::LoadLimits) -> Budget {
+        // What any scene holds besides its parts (the builder, its maps, the plan).
+        Budget { limits: limits.clone(), kept: BASE, peak: BASE }
+    }
+
+    /// Makes room for a part of the scene that holds `transient` bytes while it loads and
+    /// keeps `kept` after (counted from then on); refused past the deadline or the memory.
+    pub(crate) fn charge(&mut self, what: &str, transient: u64, kept: u64) -> Result<(), String> {
+        self.in_time()?;
+        let need = self.kept.saturating_add(transient.max(kept));
+        if need > self.limits.max_bytes {
+            return Err(format!(
+                "{what} needs about {} MiB to load, and with the {} MiB loaded before it that is over the {} MiB a scene may take (--max-scene-memory-mb)",
+                transient.max(kept) >> 20,
+                self.kept >> 20,
+                self.limits.max_bytes >> 20
+            ));
+        }
+        self.peak = self.peak.max(need);
+        self.kept += kept;
+        Ok(())
+    }
+
+    /// The most bytes a part may still hold.
+    fn room(&self) -> u64 {
+        self.limits.max_bytes.saturating_sub(self.kept)
+    }
+
+    fn in_time(&self) -> Result<(), String> {
+        match self.limits.deadline {
+            Some(d) if std::time::Instant::now() > d => {
+                Err("the scene took longer to load than its time allows".into())
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
+/// The size of the file at `path` (0 if it cannot be read: its loader says why).
+fn file_size(path: &std::path::Path) -> u64 {
+    std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
+}
+
 struct Builder<'d> {
     doc: &'d Doc,
+    budget: Budget,
     bsdf_ids: HashMap<usize, u32>,
     /// Each BSDF object's value, once built.
     bsdf_values: HashMap<usize, Bsdf>,
@@ -55,9 +135,15 @@ struct Builder<'d> {
     assets: Vec<std::path::PathBuf>,
 }
 
-pub fn build(doc: &Doc) -> R<Scene> {
+/// Builds the scene of a parsed document within `limits`.
+pub fn build(doc: &Doc, limits: &super::LoadLimits) -> R<Scene> {
+    build_within(doc, Budget::new(limits))
+}
+
+pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
     let mut b = Builder {
         doc,
+        budget,
         bsdf_ids: HashMap::new(),
         bsdf_values: HashMap::new(),
         bsdf_depth: 0,
@@ -104,7 +190,15 @@ pub fn build(doc: &Doc) -> R<Scene> {
 
     let infinite_lights =
         (0..b.lights.len() as u32).filter(|&i| b.lights[i as usize].is_infinite()).collect();
-    let accel = Accel::build(&b.shapes);
+    let prims: u64 = b.shapes.iter().map(|s| s.prim_count() as u64).sum();
+    b.budget
+        .charge(
+            &format!("the BVH of {prims} primitives"),
+            prims.saturating_mul(BVH_BUILD_PER_PRIM),
+            prims.saturating_mul(BVH_KEPT_PER_PRIM),
+        )
+        .map_err(|e| doc.err(doc.obj(root).pos, e))?;
+    let accel = Accel::build(if b.budget.limits.accel { &b.shapes } else { &[] });
     let mut scene = Scene {
         file: doc.file.clone(),
         camera: sensor,
@@ -120,12 +214,34 @@ pub fn build(doc: &Doc) -> R<Scene> {
         accel,
         plan: RenderPlan::default(),
         assets: b.assets,
+        load_estimate: b.budget.peak,
     };
     scene.plan = RenderPlan::derive(&scene);
     Ok(scene)
 }
 
 impl Builder<'_> {
+    /// Loads an image within the budget: refused from its header when its texels (at
+    /// [`TEXEL_LOAD`] bytes each while decoding) do not fit; each then keeps
+    /// [`TEXEL_KEPT`] bytes, and `extra` more.
+    fn bitmap(&mut self, path: &std::path::Path, raw: bool, extra: u64) -> Result<Bitmap, String> {
+        self.budget.in_time()?;
+        let file = file_size(path);
+        let room = self.budget.room().saturating_sub(file);
+        let fits = room / TEXEL_LOAD.max(TEXEL_KEPT + extra);
+        let bitmap = Bitmap::load_within(path, raw, fits.min(crate::texture::MAX_TEXELS)).map_err(|e| match e {
+            crate::texture::BitmapError::TooLarge { width, height, .. } if fits < crate::texture::MAX_TEXELS => format!(
+                "a {width} x {height} image does not fit in what is left of the {} MiB a scene may take to load (--max-scene-memory-mb)",
+                self.budget.limits.max_bytes >> 20
+            ),
+            e => e.to_string(),
+        })?;
+        let texels = (bitmap.width * bitmap.height) as u64;
+        let load = file.saturating_add(texels.saturating_mul(TEXEL_LOAD));
+        self.budget.charge("an image", load, texels.saturating_mul(TEXEL_KEPT + extra))?;
+        Ok(bitmap)
+    }
+
     fn err(&self, pos: Pos, msg: impl Into<String>) -> SceneError {
         self.doc.err(pos, msg)
     }
@@ -390,20 +506,28 @@ impl Builder<'_> {
                 )?;
                 let to_uv = to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY));
                 let key = (path.clone(), raw);
+                let fpos = doc.pos_of(i, "filename");
                 let bitmap = match self.bitmaps.get(&key) {
                     Some(b) => b.clone(),
                     None => {
-                        let b = Arc::new(Bitmap::load(&path, raw).map_err(|e| {
-                            self.err(doc.pos_of(i, "filename"), format!("cannot load texture '{rel}': {e}"))
-                        })?);
+                        let b = Arc::new(
+                            self.bitmap(&path, raw, 0)
+                                .map_err(|e| self.err(fpos, format!("cannot load texture '{rel}': {e}")))?,
+                        );
                         self.assets.push(path.clone());
                         self.bitmaps.insert(key, b.clone());
                         b
                     }
                 };
                 // The pyramid is built only for the filters that read it.
-                let mip =
-                    matches!(filter, FilterType::Trilinear | FilterType::Ewa).then(|| MipMap::build(&bitmap));
+                let mip = matches!(filter, FilterType::Trilinear | FilterType::Ewa);
+                if mip {
+                    let texels = (bitmap.width * bitmap.height) as u64;
+                    let what = format!("the mipmap of texture '{rel}'");
+                    let cost = texels.saturating_mul(MIP_TEXEL);
+                    self.budget.charge(&what, cost, cost).map_err(|e| self.err(fpos, e))?;
+                }
+                let mip = mip.then(|| MipMap::build(&bitmap));
                 Texture::Bitmap(Arc::new(BitmapTexture { bitmap, filter, wrap, to_uv, mip }))
             }
             "checkerboard" => Texture::Checkerboard(Arc::new(Checkerboard {
@@ -779,6 +903,9 @@ impl Builder<'_> {
                 let fpos = doc.pos_of(i, "filename");
                 let path = doc.resolve_path(fpos, &rel)?;
                 let face_normals = doc.boolean_or(i, "face_normals", false)?;
+                let per_byte = if o.plugin == "ply" { PLY_PER_BYTE } else { PARSE_PER_BYTE };
+                let parse = file_size(&path).saturating_mul(per_byte);
+                self.budget.charge(&format!("mesh '{rel}'"), parse, 0).map_err(|e| self.err(fpos, e))?;
                 let loaded = if o.plugin == "obj" {
                     let flip_v = doc.boolean_or(i, "flip_tex_coords", true)?;
                     Mesh::load_obj(&path, flip_v)
@@ -790,7 +917,15 @@ impl Builder<'_> {
                     .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
                 if face_normals {
                     m.normals.clear();
+                    m.normals.shrink_to_fit();
                 }
+                let kept = std::mem::size_of_val(m.positions.as_slice())
+                    + std::mem::size_of_val(m.normals.as_slice())
+                    + std::mem::size_of_val(m.uvs.as_slice())
+                    + std::mem::size_of_val(m.tris.as_slice());
+                self.budget
+                    .charge(&format!("mesh '{rel}'"), 0, kept as u64)
+                    .map_err(|e| self.err(fpos, e))?;
                 self.assets.push(path);
                 mesh(m)
             }
@@ -821,6 +956,10 @@ impl Builder<'_> {
                     .ok_or_else(|| self.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
                 let fpos = doc.pos_of(i, "filename");
                 let path = doc.resolve_path(fpos, &rel)?;
+                let parse = file_size(&path).saturating_mul(PARSE_PER_BYTE);
+                self.budget
+                    .charge(&format!("curve file '{rel}'"), parse, 0)
+                    .map_err(|e| self.err(fpos, e))?;
                 let text = std::fs::read_to_string(&path)
                     .map_err(|e| self.err(fpos, format!("cannot read curve file '{rel}': {e}")))?;
                 let mut curves =
@@ -833,6 +972,13 @@ impl Builder<'_> {
                     }
                 }
                 self.assets.push(path);
+                let points: usize = curves.iter().map(Vec::len).sum();
+                let segments = if bspline { points * BSPLINE_STEPS } else { points } as u64;
+                let kept =
+                    segments.saturating_mul(std::mem::size_of::<crate::geometry::curves::Segment>() as u64);
+                self.budget
+                    .charge(&format!("curve file '{rel}'"), kept, kept)
+                    .map_err(|e| self.err(fpos, e))?;
                 if bspline {
                     let (c, err) = crate::geometry::curves::Curves::bspline(&curves, BSPLINE_STEPS);
                     tracing::debug!(
@@ -952,7 +1098,8 @@ impl Builder<'_> {
                         self.err(doc.pos_of(i, "mis_compensation"), "mis_compensation is not supported")
                     );
                 }
-                let bitmap = Bitmap::load(&path, false)
+                let bitmap = self
+                    .bitmap(&path, false, ENVMAP_TEXEL)
                     .map_err(|e| self.err(fpos, format!("cannot load envmap '{rel}': {e}")))?;
                 self.assets.push(path);
                 Light::Envmap(Arc::new(EnvMap::new(Arc::new(bitmap), scale, to_world, filter)))

@@ -58,6 +58,32 @@ pub struct PathSettings {
     pub hide_emitters: bool,
 }
 
+/// What loading one scene may take.
+#[derive(Clone, Debug)]
+pub struct LoadLimits {
+    /// Most memory the load may hold, estimated before each part is read: what each texture,
+    /// mesh and curve file keeps, what its loader holds while reading it, and the BVH's build
+    /// (the estimates are in `scene::build`, measured in docs/DESIGN.md).
+    pub max_bytes: u64,
+    /// The load stops with an error once this instant is past.
+    pub deadline: Option<std::time::Instant>,
+    /// Build the BVH. Without it a scene can be checked and planned but not rendered (the
+    /// coordinator's case); its cost counts all the same, so that a scene loaded within a
+    /// budget loads within the same budget where it is rendered.
+    pub accel: bool,
+}
+
+/// The memory a farm's coordinator and workers let one scene take to load, unless told
+/// otherwise (`--max-scene-memory-mb`).
+pub const FARM_SCENE_BYTES: u64 = 8 << 30;
+
+impl Default for LoadLimits {
+    /// No limit on memory or time; the BVH built.
+    fn default() -> LoadLimits {
+        LoadLimits { max_bytes: u64::MAX, deadline: None, accel: true }
+    }
+}
+
 /// A loaded scene.
 pub struct Scene {
     pub file: PathBuf,
@@ -79,12 +105,30 @@ pub struct Scene {
     pub plan: RenderPlan,
     /// Every file the scene reads besides itself (for scene bundles).
     pub assets: Vec<PathBuf>,
+    /// The most memory its load was estimated to hold at once (see [`LoadLimits`]): a load
+    /// with `max_bytes` below it is refused.
+    pub load_estimate: u64,
 }
 
 impl Scene {
     /// Loads a scene file; `defines` override `<default>` parameters (`-D name=value`).
     pub fn load(path: &Path, defines: &[(String, String)]) -> Result<Scene, SceneError> {
-        guarded(path, || build::build(&xml::parse_file(path, defines)?))
+        Scene::load_with(path, defines, &LoadLimits::default())
+    }
+
+    /// [`Scene::load`] within `limits`: memory, time, and whether to build the BVH.
+    pub fn load_with(
+        path: &Path,
+        defines: &[(String, String)],
+        limits: &LoadLimits,
+    ) -> Result<Scene, SceneError> {
+        guarded(path, || {
+            let mut budget = build::Budget::new(limits);
+            let size = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+            let xml = size.saturating_mul(build::XML_PER_BYTE);
+            budget.charge("the scene file", xml, xml).map_err(|e| SceneError::file(path, e))?;
+            build::build_within(&xml::parse_file(path, defines)?, budget)
+        })
     }
 
     /// Loads a scene file, letting `edit` change the parsed document before it is built.
@@ -96,13 +140,13 @@ impl Scene {
         guarded(path, || {
             let mut doc = xml::parse_file(path, defines)?;
             edit(&mut doc);
-            build::build(&doc)
+            build::build(&doc, &LoadLimits::default())
         })
     }
 
     /// Loads scene XML held in memory; relative asset paths resolve against `path`'s folder.
     pub fn load_str(text: &str, path: &Path, defines: &[(String, String)]) -> Result<Scene, SceneError> {
-        guarded(path, || build::build(&xml::parse_str(text, path, defines)?))
+        guarded(path, || build::build(&xml::parse_str(text, path, defines)?, &LoadLimits::default()))
     }
 
     #[inline]

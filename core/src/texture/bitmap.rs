@@ -77,9 +77,14 @@ pub struct Bitmap {
 impl Bitmap {
     /// Loads PNG, JPEG, HDR or EXR. Integer formats are sRGB-decoded unless `raw`.
     pub fn load(path: &Path, raw: bool) -> Result<Bitmap, BitmapError> {
+        Bitmap::load_within(path, raw, MAX_TEXELS)
+    }
+
+    /// [`Bitmap::load`] of an image of at most `max_texels` texels (refused from its header).
+    pub fn load_within(path: &Path, raw: bool, max_texels: u64) -> Result<Bitmap, BitmapError> {
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
         let bytes = std::fs::read(path).map_err(image::ImageError::IoError)?;
-        Self::decode(&bytes, ext == "exr", raw, MAX_TEXELS)
+        Self::decode(&bytes, ext == "exr", raw, max_texels)
     }
 
     /// Decodes an image held in memory (EXR when `exr`, else whatever format its bytes say),

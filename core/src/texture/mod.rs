@@ -13,7 +13,7 @@ use glam::Vec2;
 
 use crate::math::Rgb;
 
-pub use bitmap::{Bitmap, BitmapError, FilterType, WrapMode};
+pub use bitmap::{Bitmap, BitmapError, FilterType, WrapMode, MAX_TEXELS};
 pub use mipmap::MipMap;
 
 /// Where a texture is looked up: uv, and its derivatives along the screen's x and y (zero

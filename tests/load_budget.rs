@@ -1,0 +1,227 @@
+//! Issue 14: a scene's load has a memory budget (`LoadLimits`, `--max-scene-memory-mb`),
+//! estimated before each part is read. These tests hold the estimate to what the load really
+//! allocates (counted by this binary's allocator) for every kind of part, and hold a load to
+//! its budget and its deadline.
+
+mod common;
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
+
+use furnace_core::{LoadLimits, Scene};
+
+/// Counts the bytes allocated now and the most at once since the last reset.
+struct Counting;
+static NOW: AtomicUsize = AtomicUsize::new(0);
+static PEAK: AtomicUsize = AtomicUsize::new(0);
+
+fn grew(by: usize) {
+    PEAK.fetch_max(NOW.fetch_add(by, Relaxed) + by, Relaxed);
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        grew(l.size());
+        unsafe { System.alloc(l) }
+    }
+    unsafe fn alloc_zeroed(&self, l: Layout) -> *mut u8 {
+        grew(l.size());
+        unsafe { System.alloc_zeroed(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        NOW.fetch_sub(l.size(), Relaxed);
+        unsafe { System.dealloc(p, l) }
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, new: usize) -> *mut u8 {
+        if new > l.size() {
+            grew(new - l.size());
+        } else {
+            NOW.fetch_sub(l.size() - new, Relaxed);
+        }
+        unsafe { System.realloc(p, l, new) }
+    }
+}
+
+#[global_allocator]
+static COUNTING: Counting = Counting;
+
+const HEAD: &str = r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
+<film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>"#;
+
+/// Writes the scene `body` (and its files, made by `files`) into its own folder.
+fn scene(dir: &Path, name: &str, body: &str, files: impl FnOnce(&Path)) -> PathBuf {
+    let d = dir.join(name);
+    std::fs::create_dir_all(&d).unwrap();
+    files(&d);
+    let path = d.join("scene.xml");
+    std::fs::write(&path, format!("{HEAD}{body}</scene>")).unwrap();
+    path
+}
+
+/// An n x n grid of vertices, two triangles a cell.
+fn grid(n: u32) -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
+    let v = (0..n * n).map(|k| [(k % n) as f32 / n as f32, (k / n) as f32 / n as f32, 0.0]).collect();
+    let mut t = Vec::new();
+    for j in 0..n - 1 {
+        for i in 0..n - 1 {
+            let a = j * n + i;
+            t.push([a, a + 1, a + n]);
+            t.push([a + 1, a + n + 1, a + n]);
+        }
+    }
+    (v, t)
+}
+
+fn ply(path: &Path, binary: bool, n: u32) {
+    let (v, t) = grid(n);
+    let format = if binary { "binary_little_endian" } else { "ascii" };
+    let mut out = format!(
+        "ply\nformat {format} 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        v.len(),
+        t.len()
+    )
+    .into_bytes();
+    for p in &v {
+        if binary {
+            p.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
+        } else {
+            out.extend_from_slice(format!("{} {} {}\n", p[0], p[1], p[2]).as_bytes());
+        }
+    }
+    for f in &t {
+        if binary {
+            out.push(3);
+            f.iter().for_each(|i| out.extend_from_slice(&(*i as i32).to_le_bytes()));
+        } else {
+            out.extend_from_slice(format!("3 {} {} {}\n", f[0], f[1], f[2]).as_bytes());
+        }
+    }
+    std::fs::write(path, out).unwrap();
+}
+
+fn obj(path: &Path, n: u32) {
+    let (v, t) = grid(n);
+    let mut out = String::new();
+    v.iter().for_each(|p| out.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2])));
+    t.iter().for_each(|f| out.push_str(&format!("f {} {} {}\n", f[0] + 1, f[1] + 1, f[2] + 1)));
+    std::fs::write(path, out).unwrap();
+}
+
+fn curves(path: &Path, count: u32) {
+    let mut out = String::new();
+    for c in 0..count {
+        for p in 0..10 {
+            out.push_str(&format!(
+                "{} {} {} 0.001\n",
+                (c % 100) as f32 * 0.01,
+                (c / 100) as f32 * 0.01,
+                p as f32 * 0.01
+            ));
+        }
+        out.push('\n');
+    }
+    std::fs::write(path, out).unwrap();
+}
+
+fn exr(path: &Path, w: u32, h: u32) {
+    let data = (0..w * h).map(|k| glam::Vec3::new((k % 7) as f32, 0.5, (k % 3) as f32)).collect();
+    furnace_core::Image { width: w, height: h, data }.write_exr(path).unwrap();
+}
+
+/// Every kind of part a scene loads, each in a scene of its own.
+fn scenes(dir: &Path) -> Vec<(&'static str, PathBuf)> {
+    let shape = |plugin: &str, file: &str| {
+        format!(r#"<shape type="{plugin}"><string name="filename" value="{file}"/></shape>"#)
+    };
+    let texture = |filter: &str| {
+        format!(
+            r#"<shape type="sphere"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">
+            <string name="filename" value="t.exr"/><string name="filter_type" value="{filter}"/></texture></bsdf></shape>"#
+        )
+    };
+    let spheres: String = (0..3000)
+        .map(|k| {
+            format!(
+                r#"<shape type="sphere"><point name="center" x="{}" y="{}" z="0"/><float name="radius" value="0.3"/>
+                <bsdf type="diffuse"><rgb name="reflectance" value="0.5, 0.2, 0.1"/></bsdf></shape>"#,
+                k % 60,
+                k / 60
+            )
+        })
+        .collect();
+    vec![
+        ("binary PLY", scene(dir, "plyb", &shape("ply", "m.ply"), |d| ply(&d.join("m.ply"), true, 200))),
+        ("text PLY", scene(dir, "plya", &shape("ply", "m.ply"), |d| ply(&d.join("m.ply"), false, 200))),
+        ("OBJ", scene(dir, "obj", &shape("obj", "m.obj"), |d| obj(&d.join("m.obj"), 200))),
+        (
+            "linear curves",
+            scene(dir, "lin", &shape("linearcurve", "c.txt"), |d| curves(&d.join("c.txt"), 4000)),
+        ),
+        (
+            "B-spline curves",
+            scene(dir, "bsp", &shape("bsplinecurve", "c.txt"), |d| curves(&d.join("c.txt"), 1000)),
+        ),
+        ("texture", scene(dir, "tex", &texture("bilinear"), |d| exr(&d.join("t.exr"), 512, 256))),
+        ("mipmapped texture", scene(dir, "mip", &texture("ewa"), |d| exr(&d.join("t.exr"), 512, 256))),
+        (
+            "environment map",
+            scene(
+                dir,
+                "env",
+                r#"<emitter type="envmap"><string name="filename" value="e.exr"/></emitter>"#,
+                |d| exr(&d.join("e.exr"), 512, 256),
+            ),
+        ),
+        ("3000 spheres", scene(dir, "spheres", &spheres, |_| {})),
+    ]
+}
+
+/// The estimate bounds what each load allocates at its peak, by no more than 4 times (an
+/// estimate that large would refuse scenes that fit); a budget just under it refuses the scene
+/// with an error naming the setting, and a budget of it loads it.
+#[test]
+fn a_scenes_load_estimate_bounds_what_it_allocates_and_its_budget_holds() {
+    let dir = common::scratch("load-budget");
+    for (what, path) in scenes(&dir) {
+        let before = NOW.load(Relaxed);
+        PEAK.store(before, Relaxed);
+        let scene = Scene::load(&path, &[]).unwrap_or_else(|e| panic!("{what}: {e}"));
+        let (peak, estimate) = ((PEAK.load(Relaxed) - before) as u64, scene.load_estimate);
+        drop(scene);
+        println!("{what}: allocated at most {peak} bytes, estimated {estimate}");
+        assert!(
+            peak <= estimate,
+            "{what}: the load allocated {peak} bytes, more than the {estimate} estimated"
+        );
+        assert!(
+            estimate <= 4 * peak.max(1 << 20),
+            "{what}: estimated {estimate} bytes for a {peak}-byte load"
+        );
+        let within =
+            |max_bytes| Scene::load_with(&path, &[], &LoadLimits { max_bytes, ..Default::default() });
+        let e = within(estimate - 1).err().unwrap_or_else(|| panic!("{what}: loaded under its estimate"));
+        assert!(e.to_string().contains("--max-scene-memory-mb"), "{what}: {e}");
+        assert!(e.line > 0 || what == "3000 spheres", "{what}: the error names no line: {e}");
+        assert!(within(estimate).is_ok(), "{what}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A load past its deadline stops with an error; without its BVH a scene is the same scene,
+/// planned alike, with nothing to trace.
+#[test]
+fn a_load_keeps_to_its_deadline_and_may_skip_the_bvh() {
+    let path = common::scenes().join("small.xml");
+    let late = LoadLimits { deadline: Some(std::time::Instant::now()), ..Default::default() };
+    let e = Scene::load_with(&path, &[], &late).err().expect("a load past its deadline");
+    assert!(e.to_string().contains("longer to load than its time allows"), "{e}");
+    let full = Scene::load(&path, &[]).unwrap();
+    let bare = Scene::load_with(&path, &[], &LoadLimits { accel: false, ..Default::default() }).unwrap();
+    assert_eq!(
+        (bare.film.clone(), bare.spp, bare.load_estimate),
+        (full.film.clone(), full.spp, full.load_estimate)
+    );
+    assert_eq!(format!("{:?}", bare.plan), format!("{:?}", full.plan));
+    assert_eq!((bare.accel.prim_count(), full.accel.prim_count() > 0), (0, true));
+}
