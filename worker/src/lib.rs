@@ -200,7 +200,11 @@ pub struct HttpLink {
     base: String,
     token: Option<String>,
     http: Client,
+    /// The cache folder, through the descriptor `_cache_dir` holds open (see `private_dir`).
     cache: PathBuf,
+    /// Its name, for messages.
+    cache_name: PathBuf,
+    _cache_dir: std::fs::File,
     scenes: Mutex<HashMap<String, Arc<Scene>>>,
     /// How long a lease request may wait at the coordinator for work.
     pub wait: Duration,
@@ -219,8 +223,9 @@ impl HttpLink {
             .timeout(Duration::from_secs(120))
             .build()
             .map_err(|e| WorkerError::Client(e.to_string()))?;
-        let cache = private_dir(&cache)
-            .map_err(|err| WorkerError::Cache { path: cache.display().to_string(), err })?;
+        let cache_name = cache;
+        let (cache, cache_dir) = private_dir(&cache_name)
+            .map_err(|err| WorkerError::Cache { path: cache_name.display().to_string(), err })?;
         let base = base.trim_end_matches('/').to_string();
         let scenes = Mutex::new(HashMap::new());
         let health_written = Mutex::new(None);
@@ -229,6 +234,8 @@ impl HttpLink {
             token,
             http,
             cache,
+            cache_name,
+            _cache_dir: cache_dir,
             scenes,
             wait: Duration::from_secs(2),
             health_file: None,
@@ -290,7 +297,10 @@ impl HttpLink {
         static LOADS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let n = LOADS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let dir = self.cache.join("bundles").join(format!("{bundle_hash}.{}.{n}", std::process::id()));
-        let cache_err = |p: &Path, e: std::io::Error| format!("cache {}: {e}", p.display());
+        let cache_err = |p: &Path, e: std::io::Error| {
+            let shown = p.strip_prefix(&self.cache).map(|rel| self.cache_name.join(rel));
+            format!("cache {}: {e}", shown.as_deref().unwrap_or(p).display())
+        };
         match std::fs::symlink_metadata(&dir) {
             Ok(m) if m.is_dir() => std::fs::remove_dir_all(&dir),
             Ok(_) => std::fs::remove_file(&dir),
@@ -314,7 +324,10 @@ impl HttpLink {
             write_file(&dst, &bytes).map_err(|e| cache_err(&dst, e))?;
         }
         let limits = furnace_core::LoadLimits { max_bytes: self.max_scene_bytes, ..Default::default() };
-        let scene = Scene::load_with(&dir.join(&bundle.scene), &[], &limits).map_err(|e| e.to_string());
+        // Errors name files by their paths in the bundle.
+        let inside = format!("{}/", dir.display());
+        let scene = Scene::load_with(&dir.join(&bundle.scene), &[], &limits)
+            .map_err(|e| e.to_string().replace(&inside, ""));
         std::fs::remove_dir_all(&dir).ok();
         scene
     }
@@ -408,19 +421,33 @@ pub fn default_cache_dir() -> PathBuf {
 /// The cache folder to use for `dir`: `dir` itself when it is a folder (not a link) of this
 /// process's user, made private (mode 0700); in a folder of another user (a shared `/tmp`,
 /// a Kubernetes emptyDir), a private `furnace-UID` inside it.
-fn private_dir(dir: &Path) -> std::io::Result<PathBuf> {
-    use std::os::unix::fs::{DirBuilderExt, MetadataExt, PermissionsExt};
+///
+/// The folder is checked through a descriptor opened without following links, and used from
+/// then on through that descriptor (`/proc/self/fd/N`, kept open with the returned file): a
+/// folder renamed and replaced by a link afterwards (possible in a parent other users may
+/// write) is never followed.
+fn private_dir(dir: &Path) -> std::io::Result<(PathBuf, std::fs::File)> {
+    use std::os::unix::fs::{DirBuilderExt, MetadataExt, OpenOptionsExt, PermissionsExt};
+    use std::os::unix::io::AsRawFd;
     // On Linux /proc/self belongs to this process's user.
     let me = std::fs::metadata("/proc/self").map(|p| p.uid()).ok();
     let mut dir = dir.to_path_buf();
     for last in [false, true] {
         std::fs::DirBuilder::new().recursive(true).mode(0o700).create(&dir)?;
-        let m = std::fs::symlink_metadata(&dir)?;
+        let opened = std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_DIRECTORY | libc::O_CLOEXEC)
+            .open(&dir);
+        let refused =
+            || std::io::Error::other(format!("{} is not a folder (a link is refused)", dir.display()));
+        let fd = match opened {
+            Ok(f) => f,
+            Err(e) if matches!(e.raw_os_error(), Some(libc::ELOOP | libc::ENOTDIR)) => return Err(refused()),
+            Err(e) => return Err(e),
+        };
+        let m = fd.metadata()?;
         if !m.is_dir() {
-            return Err(std::io::Error::other(format!(
-                "{} is not a folder (a link is refused)",
-                dir.display()
-            )));
+            return Err(refused());
         }
         match me {
             Some(uid) if m.uid() != uid && last => {
@@ -429,9 +456,11 @@ fn private_dir(dir: &Path) -> std::io::Result<PathBuf> {
             Some(uid) if m.uid() != uid => dir = dir.join(format!("furnace-{uid}")),
             _ => {
                 if m.mode() & 0o077 != 0 {
-                    std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700))?;
+                    fd.set_permissions(std::fs::Permissions::from_mode(0o700))?;
                 }
-                return Ok(dir);
+                let by_fd = PathBuf::from(format!("/proc/self/fd/{}", fd.as_raw_fd()));
+                let path = if by_fd.is_dir() { by_fd } else { dir };
+                return Ok((path, fd));
             }
         }
     }
@@ -463,7 +492,8 @@ mod cache_tests {
         let ours = root.join("ours");
         std::fs::create_dir_all(&ours).unwrap();
         std::fs::set_permissions(&ours, std::fs::Permissions::from_mode(0o777)).unwrap();
-        assert_eq!(private_dir(&ours).unwrap(), ours);
+        let (dir, _held) = private_dir(&ours).unwrap();
+        assert_eq!(std::fs::canonicalize(&dir).unwrap(), std::fs::canonicalize(&ours).unwrap());
         assert_eq!(std::fs::metadata(&ours).unwrap().mode() & 0o777, 0o700);
         let link = root.join("link");
         std::os::unix::fs::symlink(&ours, &link).unwrap();
@@ -472,10 +502,30 @@ mod cache_tests {
         let theirs = root.join("theirs");
         std::fs::create_dir_all(&theirs).unwrap();
         if std::os::unix::fs::chown(&theirs, Some(me + 1), None).is_ok() {
-            let dir = private_dir(&theirs).unwrap();
-            assert_eq!(dir, theirs.join(format!("furnace-{me}")));
-            assert_eq!(std::fs::metadata(&dir).unwrap().mode() & 0o777, 0o700);
+            let (dir, _held) = private_dir(&theirs).unwrap();
+            let inside = theirs.join(format!("furnace-{me}"));
+            assert_eq!(std::fs::canonicalize(&dir).unwrap(), std::fs::canonicalize(&inside).unwrap());
+            assert_eq!(std::fs::metadata(&inside).unwrap().mode() & 0o777, 0o700);
         }
+        std::fs::remove_dir_all(&root).ok();
+    }
+
+    /// Issue 14: the cache folder was checked once and then used by its name, so in a parent
+    /// other users may write (not sticky) it could be renamed and replaced by a link to
+    /// another folder after the check. It is now used through the descriptor that was
+    /// checked: what is written goes into the folder that was checked, wherever it is now.
+    #[test]
+    fn the_checked_cache_folder_is_used_even_if_its_name_is_swapped_for_a_link() {
+        let root = std::env::temp_dir().join(format!("furnace-cache-swap-{}", std::process::id()));
+        std::fs::remove_dir_all(&root).ok();
+        let (cache, victim) = (root.join("cache"), root.join("victim"));
+        std::fs::create_dir_all(&victim).unwrap();
+        let (dir, _held) = private_dir(&cache).unwrap();
+        std::fs::rename(&cache, root.join("moved")).unwrap();
+        std::os::unix::fs::symlink(&victim, &cache).unwrap();
+        write_file(&dir.join("files").join("f"), b"cached").unwrap();
+        assert_eq!(std::fs::read(root.join("moved/files/f")).unwrap(), b"cached");
+        assert_eq!(std::fs::read_dir(&victim).unwrap().count(), 0, "written through the link");
         std::fs::remove_dir_all(&root).ok();
     }
 }
