@@ -1,18 +1,24 @@
 //! The farm across machines, as near as one machine comes: the coordinator and two workers each
-//! in a network namespace of their own (their own network stack, addresses and routes), joined
-//! by veth pairs through slow links (tbf rate limits), with random packet loss where `nft` is
-//! installed. One worker is cut off
+//! in a network namespace of their own (their own network stack, addresses and routes). The
+//! client reaches the coordinator over a veth pair; each worker over a cable with 20 ms of
+//! delay each way (a delay line: a TUN device in each namespace and a thread of this test that
+//! passes each packet across 20 ms after it was sent, since this kernel has no `netem`), a slow
+//! link (tbf rate limits) and random packet loss where `nft` is installed. One worker is cut off
 //! while its uploads crawl over its slow link (its link goes down: nothing passes, what was
 //! queued is lost), long enough for its leases to expire; then the partition heals and it
 //! works on. The result must be byte-identical to `furnace render`.
 //!
-//! It needs root (`ip netns`); where namespaces cannot be made it says so and passes without
-//! running. The kernel here has no `netem`: where it has, the links also get delay.
+//! It needs root (`ip netns`, `/dev/net/tun`); where namespaces cannot be made it says so and
+//! passes without running.
 
 mod common;
 
-use std::io::{BufRead, BufReader};
+use std::collections::VecDeque;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::os::unix::io::AsRawFd;
 use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::{scenes, scratch};
@@ -43,15 +49,95 @@ fn run(ns: Option<&str>, cmd: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// One-way delay of each worker's cable.
+const DELAY: Duration = Duration::from_millis(20);
+
+/// A TUN device named `name` (in this namespace until moved), read and written as IP packets.
+fn tun(name: &str) -> Result<std::fs::File, String> {
+    const TUNSETIFF: libc::c_ulong = 0x4004_54ca;
+    const IFF_TUN: u16 = 0x0001;
+    const IFF_NO_PI: u16 = 0x1000;
+    let f = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open("/dev/net/tun")
+        .map_err(|e| format!("/dev/net/tun: {e}"))?;
+    // struct ifreq: the name, then the flags.
+    let mut req = [0u8; 40];
+    req[..name.len()].copy_from_slice(name.as_bytes());
+    req[16..18].copy_from_slice(&(IFF_TUN | IFF_NO_PI).to_ne_bytes());
+    // SAFETY: TUNSETIFF reads and writes a struct ifreq, which `req` is large enough to hold.
+    if unsafe { libc::ioctl(f.as_raw_fd(), TUNSETIFF, req.as_mut_ptr()) } < 0 {
+        return Err(format!("TUNSETIFF {name}: {}", std::io::Error::last_os_error()));
+    }
+    Ok(f)
+}
+
+/// A cable with a delay between two TUN devices: each packet read from one is written to the
+/// other `DELAY` after it was read (in order). A packet that cannot be written (its side is
+/// down) is lost, as on a cut cable.
+struct DelayLine {
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl DelayLine {
+    fn new(ends: [std::fs::File; 2]) -> DelayLine {
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut ends = ends;
+            // In flight towards end k: when due, and the packet.
+            let mut queues: [VecDeque<(Instant, Vec<u8>)>; 2] = [VecDeque::new(), VecDeque::new()];
+            let mut buf = vec![0u8; 65536];
+            while !flag.load(Ordering::Relaxed) {
+                let now = Instant::now();
+                let next = queues.iter().filter_map(|q| q.front().map(|p| p.0)).min();
+                let wait = next.map_or(50, |t| t.saturating_duration_since(now).as_millis().min(50) as i32);
+                let mut fds = ends.each_ref().map(|f| libc::pollfd {
+                    fd: f.as_raw_fd(),
+                    events: libc::POLLIN,
+                    revents: 0,
+                });
+                // SAFETY: `fds` is an array of two initialised pollfd.
+                unsafe { libc::poll(fds.as_mut_ptr(), 2, wait) };
+                for k in 0..2 {
+                    if fds[k].revents & libc::POLLIN != 0 {
+                        if let Ok(n) = ends[k].read(&mut buf) {
+                            queues[1 - k].push_back((Instant::now() + DELAY, buf[..n].to_vec()));
+                        }
+                    }
+                }
+                let now = Instant::now();
+                for k in 0..2 {
+                    while queues[k].front().is_some_and(|p| p.0 <= now) {
+                        let (_, p) = queues[k].pop_front().unwrap();
+                        ends[k].write(&p).ok();
+                    }
+                }
+            }
+        });
+        DelayLine { stop, thread: Some(thread) }
+    }
+}
+
+impl Drop for DelayLine {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.take().map(|t| t.join());
+    }
+}
+
 /// Three namespaces (c: the coordinator, w1 and w2: workers) and a link from this one to c;
-/// all removed on drop (removing a namespace removes its ends of the veth pairs).
+/// all removed on drop (removing a namespace removes its ends of the links).
 struct Net {
     c: String,
     w: [String; 2],
     /// The coordinator's address as seen from this namespace.
     client_addr: String,
     loss: bool,
-    delay: bool,
+    /// The workers' cables.
+    _lines: Vec<DelayLine>,
 }
 
 impl Drop for Net {
@@ -72,7 +158,7 @@ impl Net {
             // This namespace's link to c gets a subnet of its own per test process.
             client_addr: format!("10.{}.{}.2", 100 + (pid / 250) % 100, pid % 250),
             loss: false,
-            delay: false,
+            _lines: Vec::new(),
         };
         for ns in [&net.c, &net.w[0], &net.w[1]] {
             run(None, &format!("ip netns add {ns}"))?;
@@ -84,28 +170,35 @@ impl Net {
         run(None, &format!("ip link add {a} type veth peer name {b} netns {}", net.c))?;
         run(None, &format!("ip addr add {host}/24 dev {a} && ip link set {a} up"))?;
         run(Some(&net.c), &format!("ip addr add {}/24 dev {b} && ip link set {b} up", net.client_addr))?;
-        // c <-> each worker: 10.1.k.1 (c) and 10.1.k.2 (the worker), inside the namespaces.
-        for (k, w) in net.w.iter().enumerate() {
+        // c <-> each worker: 10.1.k.1 (c) and 10.1.k.2 (the worker), over a delay line.
+        let mut net = net;
+        for k in 0..2 {
             let (cw, wc) = (format!("fz{tag}c{k}"), format!("fz{tag}w{k}"));
-            run(None, &format!("ip link add {cw} netns {} type veth peer name {wc} netns {w}", net.c))?;
-            run(Some(&net.c), &format!("ip addr add 10.1.{k}.1/24 dev {cw} && ip link set {cw} up"))?;
-            run(Some(w), &format!("ip addr add 10.1.{k}.2/24 dev {wc} && ip link set {wc} up"))?;
+            let ends = [tun(&cw)?, tun(&wc)?];
+            let w = net.w[k].clone();
+            run(None, &format!("ip link set {cw} netns {} && ip link set {wc} netns {w}", net.c))?;
+            run(
+                Some(&net.c),
+                &format!("ip addr add 10.1.{k}.1 peer 10.1.{k}.2 dev {cw} && ip link set {cw} up"),
+            )?;
+            run(
+                Some(&w),
+                &format!("ip addr add 10.1.{k}.2 peer 10.1.{k}.1 dev {wc} && ip link set {wc} up"),
+            )?;
+            net._lines.push(DelayLine::new(ends));
         }
         Ok(net)
     }
 
-    /// Slow links: each worker's uploads go out at `rates[k]` (tbf); with netem, 20 ms each way;
-    /// with nft, 2% of each worker's packets are dropped.
+    /// Slow links: each worker's uploads go out at `rates[k]` (tbf); with nft, 2% of each
+    /// worker's packets are dropped.
     fn degrade(&mut self, rates: [&str; 2]) -> Result<(), String> {
         let tag = std::process::id() % 100_000;
         for (k, w) in self.w.clone().iter().enumerate() {
             let dev = format!("fz{tag}w{k}");
-            let netem = run(Some(w), &format!("tc qdisc add dev {dev} root handle 1: netem delay 20ms"));
-            self.delay = netem.is_ok();
-            let parent = if self.delay { "parent 1:1 handle 10:" } else { "root" };
             run(
                 Some(w),
-                &format!("tc qdisc add dev {dev} {parent} tbf rate {} burst 16kb latency 2s", rates[k]),
+                &format!("tc qdisc add dev {dev} root tbf rate {} burst 16kb latency 2s", rates[k]),
             )?;
             let nft = "nft add table inet fz && \
                  nft add chain inet fz out '{ type filter hook output priority 0; }' && \
@@ -158,7 +251,7 @@ fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
         }
     };
     net.degrade(["64kbit", "1mbit"]).unwrap();
-    eprintln!("links: tbf rate limits; delay (netem): {}; 2% loss (nft): {}", net.delay, net.loss);
+    eprintln!("links: {DELAY:?} each way, tbf rate limits; 2% loss (nft): {}", net.loss);
     let dir = scratch("netns");
     let data = dir.join("data");
     // The coordinator in c, listening on all its addresses.
@@ -175,6 +268,22 @@ fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
     assert!(line.starts_with("listening on"), "{line:?}");
     let _serve = Proc(serve);
     let url = format!("http://{}:{PORT}", net.client_addr);
+    // The delay is there: a health check from a worker's namespace takes a connection and a
+    // request, two round trips (the first one after the coordinator listens).
+    let probe = |k: usize| {
+        let t = Instant::now();
+        let ok = Command::new("ip")
+            .args(["netns", "exec", &net.w[k], BIN, "probe", &format!("http://10.1.{k}.1:{PORT}/healthz")])
+            .stderr(Stdio::null())
+            .status()
+            .unwrap()
+            .success();
+        (ok, t.elapsed())
+    };
+    wait_for("w1 reaches the coordinator", Duration::from_secs(10), || probe(1).0);
+    let (ok, took) = probe(1);
+    assert!(ok && took >= 4 * DELAY, "a health check over the delayed cable took {took:?}");
+    eprintln!("a health check from w1's namespace: {took:?}");
     // Submitted from this namespace, over the link to c.
     let (spp, scene) = ("4096", scenes().join("small.xml"));
     let out = Command::new(BIN)
