@@ -1479,6 +1479,33 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 
+    /// Review of issue 14: between a job's last merge and its final checkpoint (written
+    /// without the lock), a cancel would race the checkpoint that makes it done. It is refused
+    /// in that window; the job ends done.
+    #[test]
+    fn a_cancel_between_the_last_merge_and_done_is_refused() {
+        let (dir, coord) = stored("finishing");
+        let mut c = coord.lock().unwrap();
+        let scene = tiny_scene();
+        let mut last = None;
+        while let Some(l) = c.lease("w", Instant::now()) {
+            let acc = furnace_core::render_region(&scene, &l.chunk.region, 0).0;
+            last = c.merge_partial("j", l.chunk.id, l.epoch, &acc, None, Instant::now()).unwrap();
+        }
+        let snap = last.expect("the last merge makes the final checkpoint");
+        assert_eq!(snap.status.as_ref().map(|s| s.state), Some(JobState::Done));
+        let e = c.control("j", "cancel").err().expect("refused");
+        assert!(matches!(&e, CoordError::Refused(m) if m.contains("finishing")), "{e:?}");
+        let store = c.store();
+        let written = snap.write(&*store);
+        assert!(c.checkpoint_written(&snap, &written).is_none());
+        assert_eq!(c.status("j").unwrap().state, JobState::Done);
+        let e = c.control("j", "cancel").err().expect("refused");
+        assert!(matches!(&e, CoordError::Refused(m) if m.contains("is done")), "{e:?}");
+        drop(c);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
     /// Issue 14: the priority was negated to sort, so i32::MIN overflowed and went first.
     #[test]
     fn the_highest_priority_goes_first_at_the_extremes() {
