@@ -65,14 +65,13 @@ fn serve(data: &Path) -> Server {
 
 /// Stores the scene's files in the coordinator's data folder and submits the job directly.
 fn submit(server: &Server, scene_path: &Path, scene: &Scene, settings: &JobSettings) -> String {
-    let mut c = server.coord.lock().expect("lock");
+    let store = server.coord.lock().expect("lock").store();
     let (bundle, files) = Bundle::of_scene(scene_path, scene).expect("bundle");
     for (rel, path) in files {
-        c.store()
-            .put_file(&bundle.files[&rel], &std::fs::read(path).expect("read file"))
-            .expect("store file");
+        store.put_file(&bundle.files[&rel], &std::fs::read(path).expect("read file")).expect("store file");
     }
-    c.submit(JobSpec { bundle, settings: settings.clone() }, None).expect("submit").0
+    let spec = JobSpec { bundle, settings: settings.clone() };
+    furnace_coordinator::state::submit(&server.coord, spec, None, None).expect("submit").0
 }
 
 /// Runs `workers` threads of lease + upload until the job has no chunks left. Returns

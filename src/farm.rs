@@ -199,14 +199,14 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     if !a.bind.ip().is_loopback() && a.token.is_none() {
         bail!("binding to {} (not loopback) needs a shared token: --token or FURNACE_TOKEN", a.bind);
     }
-    let mut coord = furnace_coordinator::Coordinator::open(&a.data_dir)
+    // Local workers take the scene the coordinator loaded to check the job (restored jobs'
+    // too).
+    let mut coord = furnace_coordinator::Coordinator::open_with(&a.data_dir, a.local_workers > 0)
         .with_context(|| format!("cannot open data folder {}", a.data_dir.display()))?;
     coord.lease_duration = Duration::from_secs_f64(a.lease_seconds.max(0.1));
     coord.evict_paused_after = Duration::from_secs_f64(a.evict_paused_minutes.clamp(0.0, 1e6) * 60.0);
     coord.max_job_bytes = (a.max_job_memory_gb.clamp(0.0, 1e6) * 1e9) as usize;
     coord.max_scene_bytes = a.max_scene_memory_mb.saturating_mul(1 << 20);
-    // Local workers take the scene the coordinator loaded to check the job.
-    coord.keep_scenes = a.local_workers > 0;
     let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone())
         .with_body_budget((a.body_budget_mb.min(1 << 30) << 20) as usize)
         .with_max_connections(a.max_connections.clamp(1, u32::MAX as usize));

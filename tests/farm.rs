@@ -8,7 +8,7 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use common::*;
-use furnace_coordinator::state::accept_partial;
+use furnace_coordinator::state::{self, accept_partial};
 use furnace_coordinator::{CoordError, Coordinator};
 use furnace_core::Scene;
 use furnace_proto::{chunk_plan, Bundle, JobSettings, JobSpec, JobState, JobStatus};
@@ -27,7 +27,7 @@ fn submit_small(coord: &Mutex<Coordinator>, scene: &Scene, settings: JobSettings
     for (rel, path) in files {
         coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
     }
-    coord.lock().unwrap().submit(JobSpec { bundle, settings }, None).unwrap().0
+    state::submit(coord, JobSpec { bundle, settings }, None, None).unwrap().0
 }
 
 /// Leases, renders and hands in up to `limit` chunks through `accept_partial` (the path of
@@ -411,22 +411,17 @@ fn finished_jobs_release_their_memory_restart_without_their_scene_and_can_be_del
     std::fs::remove_dir_all(data.join("bundles")).unwrap();
     std::fs::remove_dir_all(data.join("files")).unwrap();
     let coord = open_coordinator(&data);
-    let mut c = coord.lock().unwrap();
+    let c = coord.lock().unwrap();
     assert_eq!(c.status(&job).unwrap(), status);
     assert_eq!(c.held_bytes(&job).unwrap(), 0);
     assert!(c.image(&job).unwrap().data == image.data);
-    // Deleted: gone from memory and the database; the caller removes its folder and the
-    // files no other job uses (here: every file of its bundle).
-    let gone = c.delete(&job).unwrap();
-    assert_eq!(gone[0], data.join("jobs").join(&job));
-    let (bundle, _) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-    for h in bundle.files.values() {
-        assert!(gone.contains(&data.join("files").join(h)), "{h} is not removed");
-    }
-    assert!(matches!(c.status(&job), Err(CoordError::Unknown(_))));
     drop(c);
+    // Deleted: gone from memory and the database, with its folder (the files of its bundle
+    // were removed above, as deleting would have).
+    state::delete(&coord, &job).unwrap();
+    assert!(!data.join("jobs").join(&job).exists());
+    assert!(matches!(coord.lock().unwrap().status(&job), Err(CoordError::Unknown(_))));
     drop(coord);
-    std::fs::remove_dir_all(&gone[0]).unwrap();
     let coord = open_coordinator(&data);
     assert!(coord.lock().unwrap().job_ids().is_empty());
     std::fs::remove_dir_all(&dir).ok();
@@ -461,7 +456,7 @@ fn cancelled_jobs_keep_their_image_so_far_and_release_their_memory() {
     assert!(matches!(late, Err(CoordError::Refused(_))), "{late:?}");
     let resumed = furnace_coordinator::state::control(&coord, &job, "resume");
     assert!(matches!(resumed, Err(CoordError::Refused(_))), "{resumed:?}");
-    let priority = coord.lock().unwrap().set_priority(&job, 5);
+    let priority = state::set_priority(&coord, &job, 5);
     assert!(matches!(priority, Err(CoordError::Refused(_))), "{priority:?}");
     furnace_coordinator::state::control(&coord, &job, "cancel").unwrap();
     assert_eq!(coord.lock().unwrap().status(&job).unwrap(), status);
@@ -523,8 +518,11 @@ fn idle_paused_jobs_are_set_aside_and_come_back_when_resumed() {
         assert!(c.image(&job).unwrap().data == image.data, "the preview of a job set aside changed");
         assert_eq!(c.stats(Instant::now()).chunks["pending"], before.chunks_pending);
     }
-    // Resumed: loaded again from its checkpoint, it goes on and ends as if never set aside.
+    // Resumed: loaded again from its checkpoint, it goes on and ends as if never set aside
+    // (and is not refused for its scene's memory, though the limit has been lowered since).
+    coord.lock().unwrap().max_scene_bytes = 1;
     control(&coord, &job, "resume").unwrap();
+    coord.lock().unwrap().max_scene_bytes = u64::MAX;
     assert!(coord.lock().unwrap().held_bytes(&job).unwrap() > 0);
     assert_eq!(coord.lock().unwrap().status(&job).unwrap().chunks_done, before.chunks_done);
     render_leases(&coord, &scene, usize::MAX);
@@ -579,27 +577,26 @@ fn chunks_too_big_to_upload_and_jobs_over_the_memory_cap_are_refused() {
         coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
     }
     let spec = |settings: &JobSettings| JobSpec { bundle: bundle.clone(), settings: settings.clone() };
-    let e = coord.lock().unwrap().submit(spec(&settings), None).unwrap_err();
+    let e = state::submit(&coord, spec(&settings), None, None).unwrap_err();
     assert!(matches!(&e, CoordError::Unrenderable(m) if m.contains("smaller tile_size")), "{e:?}");
     let small = JobSettings { tile_size: 8, ..settings };
     coord.lock().unwrap().max_partial = 256 << 20;
     // 48 x 40 pixels hold 184 KB: room for two such jobs under 400 KB, not three.
     coord.lock().unwrap().max_job_bytes = 400_000;
-    let mut c = coord.lock().unwrap();
-    c.submit(spec(&small), None).unwrap();
-    c.submit(spec(&JobSettings { seed: 1, ..small.clone() }), None).unwrap();
-    let e = c.submit(spec(&JobSettings { seed: 2, ..small.clone() }), None).unwrap_err();
+    let submit = |s: &JobSettings| state::submit(&coord, spec(s), None, None);
+    submit(&small).unwrap();
+    submit(&JobSettings { seed: 1, ..small.clone() }).unwrap();
+    let e = submit(&JobSettings { seed: 2, ..small.clone() }).unwrap_err();
     assert!(matches!(&e, CoordError::Busy(m) if m.contains("--max-job-memory-gb")), "{e:?}");
-    assert_eq!(c.job_ids().len(), 2);
+    assert_eq!(coord.lock().unwrap().job_ids().len(), 2);
     // A scene that needs more memory to load than a scene may take is refused, naming the
     // setting; the coordinator builds no BVH, yet counts it.
-    c.max_job_bytes = 8 << 30;
-    c.max_scene_bytes = scene.load_estimate - 1;
-    let e = c.submit(spec(&JobSettings { seed: 3, ..small.clone() }), None).unwrap_err();
+    coord.lock().unwrap().max_job_bytes = 8 << 30;
+    coord.lock().unwrap().max_scene_bytes = scene.load_estimate - 1;
+    let e = submit(&JobSettings { seed: 3, ..small.clone() }).unwrap_err();
     assert!(matches!(&e, CoordError::Unrenderable(m) if m.contains("--max-scene-memory-mb")), "{e:?}");
-    c.max_scene_bytes = scene.load_estimate;
-    c.submit(spec(&JobSettings { seed: 3, ..small }), None).unwrap();
-    drop(c);
+    coord.lock().unwrap().max_scene_bytes = scene.load_estimate;
+    submit(&JobSettings { seed: 3, ..small }).unwrap();
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -767,14 +764,14 @@ fn a_job_left_out_at_start_can_be_deleted() {
     std::fs::remove_dir_all(data.join("bundles")).unwrap();
     std::fs::remove_dir_all(data.join("files")).unwrap();
     let coord = open_coordinator(&data);
-    let mut c = coord.lock().unwrap();
-    assert!(matches!(c.status(&job), Err(CoordError::Unknown(_))));
+    assert!(matches!(coord.lock().unwrap().status(&job), Err(CoordError::Unknown(_))));
     for bad in ["..", "", "a/b"] {
-        assert!(matches!(c.delete(bad), Err(CoordError::Unknown(_))), "{bad:?}");
+        assert!(matches!(state::delete(&coord, bad), Err(CoordError::Unknown(_))), "{bad:?}");
     }
-    assert_eq!(c.delete(&job).unwrap()[0], data.join("jobs").join(&job));
-    assert!(matches!(c.delete(&job), Err(CoordError::Unknown(_))));
-    drop(c);
+    assert!(data.join("jobs").join(&job).is_dir());
+    state::delete(&coord, &job).unwrap();
+    assert!(!data.join("jobs").join(&job).exists());
+    assert!(matches!(state::delete(&coord, &job), Err(CoordError::Unknown(_))));
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -787,15 +784,15 @@ fn deleting_a_job_keeps_the_files_other_jobs_use() {
     let settings = JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() };
     let a = submit_small(&coord, &scene, settings.clone());
     let b = submit_small(&coord, &scene, JobSettings { seed: 1, ..settings });
-    let mut c = coord.lock().unwrap();
     let (bundle, _) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-    let first = c.delete(&a).unwrap();
-    assert_eq!(first, vec![dir.join("data/jobs").join(&a)], "b still uses the files");
-    let second = c.delete(&b).unwrap();
-    for h in bundle.files.values() {
-        assert!(second.contains(&dir.join("data/files").join(h)));
-    }
-    assert!(second.iter().any(|p| p.ends_with(format!("bundles/{}", bundle.hash()))));
-    drop(c);
+    let files = || bundle.files.values().filter(|h| dir.join("data/files").join(h).is_file()).count();
+    let laid_out = dir.join("data/bundles").join(bundle.hash());
+    state::delete(&coord, &a).unwrap();
+    assert!(!dir.join("data/jobs").join(&a).exists());
+    assert_eq!(files(), bundle.files.len(), "b still uses the files");
+    assert!(laid_out.is_dir() && dir.join("data/jobs").join(&b).is_dir());
+    state::delete(&coord, &b).unwrap();
+    assert_eq!(files(), 0);
+    assert!(!laid_out.exists() && !dir.join("data/jobs").join(&b).exists());
     std::fs::remove_dir_all(&dir).ok();
 }

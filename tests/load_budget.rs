@@ -204,6 +204,11 @@ fn a_scenes_load_estimate_bounds_what_it_allocates_and_its_budget_holds() {
         assert!(e.to_string().contains("--max-scene-memory-mb"), "{what}: {e}");
         assert!(e.line > 0 || what == "3000 spheres", "{what}: the error names no line: {e}");
         assert!(within(estimate).is_ok(), "{what}");
+        if what == "texture" {
+            // An image file larger than the room left is refused before it is read.
+            let e = within(2 << 20).err().expect("a 1.2 MiB image in under 1 MiB of room");
+            assert!(e.to_string().contains("an image file needs about 1.2 MiB"), "{e}");
+        }
     }
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -781,6 +781,8 @@ pub async fn run(
 ) -> std::io::Result<()> {
     let s = state.clone();
     tokio::spawn(async move {
+        use std::sync::atomic::{AtomicBool, Ordering};
+        let syncing = Arc::new(AtomicBool::new(false));
         let mut tick = tokio::time::interval(Duration::from_millis(500));
         for n in 0u64.. {
             tick.tick().await;
@@ -792,13 +794,15 @@ pub async fn run(
             if s.lock().expire_leases(Instant::now()) > 0 {
                 s.new_work();
             }
-            // Rows changed by leases (a job running now).
-            if s.lock().rows_due() {
-                let coord = s.coord.clone();
+            // Rows changed by leases (a job running now), or not stored yet; one sync at a
+            // time (a database that stalls does not fill the blocking pool with them).
+            if s.lock().rows_due() && !syncing.swap(true, Ordering::AcqRel) {
+                let (coord, syncing) = (s.coord.clone(), syncing.clone());
                 tokio::task::spawn_blocking(move || {
                     if let Err(e) = crate::state::sync_rows(&coord) {
                         tracing::warn!("cannot store the jobs' rows: {e}");
                     }
+                    syncing.store(false, Ordering::Release);
                 });
             }
             if n % 4 == 0 {

@@ -125,6 +125,7 @@ impl Picture {
 
 /// What loading a job's scene needs of the coordinator, taken out of it so that scenes are
 /// loaded, validated and planned without its lock.
+#[derive(Clone)]
 struct Loader {
     store: Arc<dyn Store>,
     keep_scenes: bool,
@@ -243,7 +244,10 @@ impl Loader {
     /// restart, or when a job set aside is resumed); a
     /// stored file that cannot be used is set aside and its chunks render again.
     fn restore(&self, max_partial: usize, row: JobRow) -> Result<Job, CoordError> {
-        let mut job = self.new_job(row.id, row.spec, row.state, row.created, None)?;
+        // A job accepted once is not refused now for the memory its scene takes (the limit may
+        // have been lowered since).
+        let unlimited = Loader { max_scene_bytes: u64::MAX, ..self.clone() };
+        let mut job = unlimited.new_job(row.id, row.spec, row.state, row.created, None)?;
         let id = job.id.clone();
         if let Some(bytes) = self.store.checkpoint(&id) {
             let n = job.plan.len();
@@ -332,7 +336,13 @@ impl Loader {
 impl Coordinator {
     /// Opens (or creates) the data directory and resumes every unfinished job.
     pub fn open(data: &Path) -> Result<Coordinator, CoordError> {
-        Coordinator::with_store(Arc::new(DiskStore::open(data)?))
+        Coordinator::open_with(data, false)
+    }
+
+    /// [`Coordinator::open`], keeping each job's scene (restored ones too) for workers in
+    /// this process with `keep_scenes`.
+    pub fn open_with(data: &Path, keep_scenes: bool) -> Result<Coordinator, CoordError> {
+        Coordinator::restored(Arc::new(DiskStore::open(data)?), keep_scenes)
     }
 
     /// A coordinator that stores nothing: the one `furnace render` runs in its own process.
@@ -346,6 +356,10 @@ impl Coordinator {
     /// A coordinator over `store`, with every job the store holds restored: finished ones as
     /// their final status, the others from their checkpoint and stored partials.
     pub fn with_store(store: Arc<dyn Store>) -> Result<Coordinator, CoordError> {
+        Coordinator::restored(store, false)
+    }
+
+    fn restored(store: Arc<dyn Store>, keep_scenes: bool) -> Result<Coordinator, CoordError> {
         // Epochs after a restart start above every epoch handed out before.
         let boot = store.boot()?;
         let mut c = Coordinator {
@@ -354,7 +368,7 @@ impl Coordinator {
             next_epoch: boot << 32,
             lease_duration: Duration::from_secs(30),
             max_partial: 256 << 20,
-            keep_scenes: false,
+            keep_scenes,
             checkpoint_retry: Duration::from_secs(5),
             checkpoint_interval: Duration::from_secs(10),
             evict_paused_after: Duration::from_secs(600),
@@ -454,23 +468,6 @@ impl Coordinator {
         self.loader().restore(self.max_partial, row)
     }
 
-    /// Submits a job; with an idempotency key already used, returns that job instead. Loads
-    /// the scene and stores the row with `&mut self`: for a coordinator used by one thread
-    /// (`furnace render`, tests); the server calls [`submit`], which does both without the lock.
-    pub fn submit(&mut self, spec: JobSpec, key: Option<&str>) -> Result<(String, bool), CoordError> {
-        let request = request_hash(&spec);
-        if let Some(id) = self.idempotent(key, &request)? {
-            return Ok((id, false));
-        }
-        let job = self.loader().submitted(spec, key, None)?;
-        let id = self.insert_job(job, key, &request)?;
-        if let Err(e) = self.write_rows_now() {
-            self.unsubmit(&id);
-            return Err(e);
-        }
-        Ok((id, true))
-    }
-
     /// Submits a job for a scene already loaded in this process. Such a job has no bundle and
     /// is not stored: it lives as long as the process (`furnace render`).
     pub fn submit_scene(&mut self, scene: Arc<Scene>, settings: JobSettings) -> Result<String, CoordError> {
@@ -564,8 +561,9 @@ impl Coordinator {
         !self.dirty.is_empty()
     }
 
-    /// Stores the changed rows while holding the lock, for a coordinator used by one thread;
-    /// returns what the deleted jobs leave to remove. The server uses [`sync_rows`].
+    /// Stores the changed rows while holding the lock: at start, before anyone else can ask
+    /// anything of the coordinator (everyone after goes through [`sync_rows`]). Returns what
+    /// the deleted jobs leave to remove.
     fn write_rows_now(&mut self) -> Result<Vec<PathBuf>, CoordError> {
         let ops = self.take_rows();
         if ops.is_empty() {
@@ -626,13 +624,6 @@ impl Coordinator {
         Ok(if store { self.job_mut(id)?.snapshot(Duration::ZERO) } else { None })
     }
 
-    /// Sets a job's priority and stores it with `&mut self` (see [`Coordinator::submit`]); the
-    /// server calls [`set_priority`].
-    pub fn set_priority(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
-        self.reprioritise(id, priority)?;
-        self.write_rows_now().map(drop)
-    }
-
     fn reprioritise(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
         let job = self.job_mut(id)?;
         if matches!(job.state, JobState::Done | JobState::Cancelled) {
@@ -671,6 +662,8 @@ impl Coordinator {
             .jobs
             .values()
             .filter(|j| matches!(j.state, JobState::Queued | JobState::Running))
+            // Not before its row (and its folder, where its partials go) is stored.
+            .filter(|j| !self.unwritten.contains_key(&j.id))
             .filter(|j| j.failures.get(worker).copied().unwrap_or(0) < MAX_FAILURES_PER_WORKER)
             .filter(|j| !j.queue.is_empty())
             .map(|j| (std::cmp::Reverse(j.spec.settings.priority), j.created, j.id.clone()))
@@ -1016,14 +1009,6 @@ impl Coordinator {
         }
     }
 
-    /// Deletes a job with `&mut self` (see [`Coordinator::submit`]): its row and its state in
-    /// memory; returns its folder and the bundle and stored files no other job uses, for the
-    /// caller to remove. The server calls [`delete`].
-    pub fn delete(&mut self, id: &str) -> Result<Vec<PathBuf>, CoordError> {
-        self.forget(id)?;
-        self.write_rows_now()
-    }
-
     /// Forgets a job, its row to be deleted: leases of it are refused from now on.
     fn forget(&mut self, id: &str) -> Result<(), CoordError> {
         // A job left out at the last start (its scene files gone) has a row but no state.
@@ -1114,8 +1099,12 @@ fn write_checkpoints(coord: &Mutex<Coordinator>, mut snap: Option<Snapshot>) -> 
         snap = coord.lock().unwrap_or_else(|e| e.into_inner()).checkpoint_written(&s, &result);
         result?;
     }
-    // A finished job's state.
-    sync_rows(coord)
+    // A finished job's state; if it cannot be stored now, the server's timer tries again (the
+    // merge that led here succeeded: its upload is not failed for it).
+    if let Err(e) = sync_rows(coord) {
+        tracing::warn!("cannot store the jobs' rows yet: {e}");
+    }
+    Ok(())
 }
 
 /// Stores the job rows changed since the last time (submissions, states, priorities,
@@ -1252,7 +1241,14 @@ pub fn set_priority(coord: &Mutex<Coordinator>, id: &str, priority: i32) -> Resu
 /// Deletes a job: forgotten under the lock (its leases refused from then on), its row, folder
 /// and the files no other job uses removed without it.
 pub fn delete(coord: &Mutex<Coordinator>, id: &str) -> Result<(), CoordError> {
-    coord.lock().unwrap_or_else(|e| e.into_inner()).forget(id)?;
+    {
+        let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
+        // A delete whose row is still to be removed (an earlier try failed to store it) is
+        // tried again, not refused as unknown.
+        if !c.dirty.contains(id) || c.jobs.contains_key(id) {
+            c.forget(id)?;
+        }
+    }
     sync_rows(coord)
 }
 
@@ -1269,13 +1265,10 @@ pub fn submit(
     let started = Instant::now();
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
     let request = request_hash(&spec);
-    let loader = {
-        let c = lock();
-        if let Some(id) = c.idempotent(key, &request)? {
-            return Ok((id, false));
-        }
-        c.loader()
-    };
+    if let Some(id) = keyed(coord, key, &request)? {
+        return Ok((id, false));
+    }
+    let loader = lock().loader();
     // A load past the deadline stops there (its error says so): either way, nothing is submitted.
     let job = loader.submitted(spec, key, deadline);
     if deadline.is_some_and(|d| Instant::now() > d) {
@@ -1285,13 +1278,15 @@ pub fn submit(
         )));
     }
     let job = job?;
-    let id = {
-        let mut c = lock();
-        // A submission with the same key that finished meanwhile wins.
-        if let Some(id) = c.idempotent(key, &request)? {
+    let id = loop {
+        // A submission with the same key that finished meanwhile wins, once its row is stored.
+        if let Some(id) = keyed(coord, key, &request)? {
             return Ok((id, false));
         }
-        c.insert_job(job, key, &request)?
+        let mut c = lock();
+        if c.idempotent(key, &request)?.is_none() {
+            break c.insert_job(job, key, &request)?;
+        }
     };
     // Answered only once its row is stored; if it cannot be, the job is taken back (no
     // writer may be storing it meanwhile).
@@ -1303,6 +1298,24 @@ pub fn submit(
         }
     }
     Ok((id, true))
+}
+
+/// The job an idempotency key names, once its row is stored: a job whose row is still being
+/// written (or fails, and is taken back) is not answered for.
+fn keyed(coord: &Mutex<Coordinator>, key: Option<&str>, request: &str) -> Result<Option<String>, CoordError> {
+    loop {
+        let found = {
+            let c = coord.lock().unwrap_or_else(|e| e.into_inner());
+            c.idempotent(key, request)?.map(|id| {
+                let pending = c.unwritten.contains_key(&id);
+                (id, pending)
+            })
+        };
+        match found {
+            Some((_, true)) => sync_rows(coord)?,
+            other => return Ok(other.map(|(id, _)| id)),
+        }
+    }
 }
 
 /// The first check of an upload, before its body is decoded: the chunk must be leased under
@@ -1470,7 +1483,8 @@ mod tests {
         let spec = c.jobs["j"].spec.clone();
         let job = c.loader().job_from_scene("j2".into(), spec, JobState::Queued, 2, tiny_scene()).unwrap();
         c.insert_job(job, Some("k"), "h").unwrap();
-        c.set_priority("j", 3).unwrap_err();
+        c.reprioritise("j", 3).unwrap();
+        c.write_rows_now().unwrap_err();
         assert!(c.unsubmit("j2"));
         assert!(c.status("j2").is_err() && c.idempotent(Some("k"), "h").unwrap().is_none());
         c.write_rows_now().unwrap();
@@ -1506,6 +1520,26 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 
+    /// Review of issue 14: a job was leased, and a repeated submission answered with it,
+    /// before its row (and its folder, where its partials go) was stored. Both now wait for
+    /// the row.
+    #[test]
+    fn a_job_is_leased_and_named_by_its_key_only_once_its_row_is_stored() {
+        let (dir, coord) = stored("pending");
+        let mut c = coord.lock().unwrap();
+        while c.lease("w", Instant::now()).is_some() {}
+        let spec = c.jobs["j"].spec.clone();
+        let job = c.loader().job_from_scene("j2".into(), spec, JobState::Queued, 2, tiny_scene()).unwrap();
+        c.insert_job(job, Some("k2"), "h2").unwrap();
+        assert!(c.lease("w", Instant::now()).is_none(), "leased before its row is stored");
+        assert!(!dir.join("jobs/j2").exists());
+        drop(c);
+        assert_eq!(keyed(&coord, Some("k2"), "h2").unwrap().as_deref(), Some("j2"));
+        assert_eq!(stored_row(&dir, "j2"), Some((0, "queued".into())), "answered before its row was stored");
+        assert_eq!(coord.lock().unwrap().lease("w", Instant::now()).map(|l| l.job).as_deref(), Some("j2"));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
     /// Issue 14: the priority was negated to sort, so i32::MIN overflowed and went first.
     #[test]
     fn the_highest_priority_goes_first_at_the_extremes() {
@@ -1514,9 +1548,9 @@ mod tests {
         let high = submit(&mut c, i32::MAX);
         let now = Instant::now();
         assert_eq!(c.lease("w", now).unwrap().job, high);
-        c.set_priority(&high, i32::MIN + 1).unwrap();
+        c.reprioritise(&high, i32::MIN + 1).unwrap();
         assert_eq!(c.lease("w", now).unwrap().job, high);
-        c.set_priority(&low, 0).unwrap();
+        c.reprioritise(&low, 0).unwrap();
         assert_eq!(c.lease("w", now).unwrap().job, low);
     }
 

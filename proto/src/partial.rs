@@ -44,6 +44,13 @@ const STATS: &str = "stats";
 /// The header attribute holding the dropped-sample tallies.
 const DROPPED: &str = "dropped";
 
+/// The channels in the order EXR stores them (by name), each with its word's index in a pixel.
+fn channel_order() -> Vec<(String, usize)> {
+    let mut order: Vec<(String, usize)> = channel_names().into_iter().zip(0..).collect();
+    order.sort();
+    order
+}
+
 fn channel_names() -> Vec<String> {
     let mut names: Vec<String> =
         QUANTITIES.iter().flat_map(|q| (0..4).map(move |k| format!("{q}.{k}"))).collect();
@@ -82,20 +89,34 @@ pub fn write_chunk(
     stats: Option<&crate::RenderStats>,
     out: &mut dyn std::io::Write,
 ) -> std::io::Result<()> {
+    let head = exr_header(acc, stats)?;
     let mut z = zstd::Encoder::new(out, 1)?;
-    write_exr(acc, stats, &mut std::io::BufWriter::with_capacity(1 << 16, &mut z))?;
+    // The frame records its size, as a one-shot compression's does: a decoder knows what it
+    // needs (and refuses what is over its limit) before decompressing.
+    z.include_contentsize(true)?;
+    z.set_pledged_src_size(Some(exr_size(acc, &head)))?;
+    write_exr(acc, &head, &mut std::io::BufWriter::with_capacity(1 << 16, &mut z))?;
     z.finish()?;
     Ok(())
 }
 
-/// Writes the uncompressed, scan-line EXR of the format above: the header (the attributes an
-/// OpenEXR reader needs, in the order the `exr` crate writes them), the offset table, then one
-/// block a line, each channel's words in channel-name order.
-fn write_exr(
-    acc: &Accum,
-    stats: Option<&crate::RenderStats>,
-    out: &mut impl std::io::Write,
-) -> std::io::Result<()> {
+/// Bytes of a line's block: its number, its size, its words.
+fn block_size(acc: &Accum) -> usize {
+    8 + acc.width as usize * WORDS * 4
+}
+
+/// Bytes of the EXR with header `head`.
+fn exr_size(acc: &Accum, head: &[u8]) -> u64 {
+    (head.len() + acc.height as usize * (8 + block_size(acc))) as u64
+}
+
+/// The header of the uncompressed, scan-line EXR of the format above: the attributes an
+/// OpenEXR reader needs, in the order the `exr` crate writes them. An empty window has no
+/// EXR.
+fn exr_header(acc: &Accum, stats: Option<&crate::RenderStats>) -> std::io::Result<Vec<u8>> {
+    if acc.width == 0 || acc.height == 0 {
+        return Err(std::io::Error::new(std::io::ErrorKind::InvalidInput, "an empty partial has no EXR"));
+    }
     fn attr(h: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]) {
         for s in [name, kind] {
             h.extend_from_slice(s.as_bytes());
@@ -105,19 +126,15 @@ fn write_exr(
         h.extend_from_slice(value);
     }
     let i32s = |v: &[i32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-    let (w, h) = (acc.width as usize, acc.height as usize);
+    let h = acc.height as usize;
     let window = i32s(&[
         acc.x0 as i32,
         acc.y0 as i32,
         (acc.x0 + acc.width) as i32 - 1,
         (acc.y0 + acc.height) as i32 - 1,
     ]);
-    // The channels in the order EXR stores them, each with its word's index in a pixel.
-    let names = channel_names();
-    let mut order: Vec<(&String, usize)> = names.iter().zip(0..).collect();
-    order.sort();
     let mut channels = Vec::new();
-    for (name, _) in &order {
+    for (name, _) in channel_order() {
         channels.extend_from_slice(name.as_bytes());
         // Unsigned int, linear, three reserved bytes, sampled every pixel.
         channels.extend_from_slice(&[0, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0]);
@@ -141,17 +158,26 @@ fn write_exr(
         attr(&mut head, STATS, "string", serde_json::to_string(s).expect("statistics serialise").as_bytes());
     }
     head.push(0);
-    out.write_all(&head)?;
-    let block = 8 + w * WORDS * 4;
+    Ok(head)
+}
+
+/// Writes the EXR whose header is `head`: the header, the offset table, then one block a line,
+/// each channel's words in channel-name order.
+fn write_exr(acc: &Accum, head: &[u8], out: &mut impl std::io::Write) -> std::io::Result<()> {
+    let (w, h) = (acc.width as usize, acc.height as usize);
+    let order = channel_order();
+    out.write_all(head)?;
+    let block = block_size(acc);
     for y in 0..h {
         out.write_all(&((head.len() + h * 8 + y * block) as u64).to_le_bytes())?;
     }
-    let mut line = Vec::with_capacity(block);
+    let (mut line, mut words) = (Vec::with_capacity(block), Vec::with_capacity(w));
     for (y, row) in acc.pixels.chunks_exact(w.max(1)).enumerate().take(h) {
         line.clear();
         line.extend_from_slice(&(acc.y0 as i32 + y as i32).to_le_bytes());
         line.extend_from_slice(&((w * WORDS * 4) as i32).to_le_bytes());
-        let words: Vec<[u32; WORDS]> = row.iter().map(pixel_words).collect();
+        words.clear();
+        words.extend(row.iter().map(pixel_words));
         for &(_, k) in &order {
             line.extend(words.iter().flat_map(|p| p[k].to_le_bytes()));
         }
@@ -344,7 +370,7 @@ mod tests {
             }
             acc.dropped.too_bright = 3;
             let mut ours = Vec::new();
-            write_exr(&acc, None, &mut ours).unwrap();
+            write_exr(&acc, &exr_header(&acc, None).unwrap(), &mut ours).unwrap();
             assert!(ours == crate_exr(&acc), "{w} x {h} at {x0}, {y0}");
             let stats = crate::RenderStats { rays: 42, ..Default::default() };
             let (back, st) = decode_chunk(&encode_chunk(&acc, Some(&stats)), 1 << 20).unwrap();

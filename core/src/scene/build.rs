@@ -50,9 +50,9 @@ const BASE: u64 = 1 << 20;
 /// What the XML parser holds per byte of the scene file (the text, the tree, positions), and
 /// keeps while the scene is built.
 pub(crate) const XML_PER_BYTE: u64 = 20;
-/// What a texel costs while its image is read and decoded: the file, the decoder's buffer and
-/// the linear copy.
-const TEXEL_LOAD: u64 = 32;
+/// What a texel costs while its image is read and decoded, besides the file: the decoder's
+/// buffer (up to 16 bytes for float RGBA), the float copy and the linear texels.
+const TEXEL_LOAD: u64 = 40;
 /// What a texel keeps: linear RGB, and the pyramid's levels when a filter reads them.
 const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
 const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
@@ -87,11 +87,12 @@ impl Budget {
         self.in_time()?;
         let need = self.kept.saturating_add(transient.max(kept));
         if need > self.limits.max_bytes {
+            let mib = |b: u64| format!("{:.1} MiB", b as f64 / (1u64 << 20) as f64);
             return Err(format!(
-                "{what} needs about {} MiB to load, and with the {} MiB loaded before it that is over the {} MiB a scene may take (--max-scene-memory-mb)",
-                transient.max(kept) >> 20,
-                self.kept >> 20,
-                self.limits.max_bytes >> 20
+                "{what} needs about {} to load, and with the {} loaded before it that is over the {} a scene may take (--max-scene-memory-mb)",
+                mib(transient.max(kept)),
+                mib(self.kept),
+                mib(self.limits.max_bytes)
             ));
         }
         self.peak = self.peak.max(need);
@@ -227,12 +228,14 @@ impl Builder<'_> {
     fn bitmap(&mut self, path: &std::path::Path, raw: bool, extra: u64) -> Result<Bitmap, String> {
         self.budget.in_time()?;
         let file = file_size(path);
+        // The file is read whole: refused before it is, if it alone does not fit.
+        self.budget.charge("an image file", file, 0)?;
         let room = self.budget.room().saturating_sub(file);
         let fits = room / TEXEL_LOAD.max(TEXEL_KEPT + extra);
         let bitmap = Bitmap::load_within(path, raw, fits.min(crate::texture::MAX_TEXELS)).map_err(|e| match e {
             crate::texture::BitmapError::TooLarge { width, height, .. } if fits < crate::texture::MAX_TEXELS => format!(
-                "a {width} x {height} image does not fit in what is left of the {} MiB a scene may take to load (--max-scene-memory-mb)",
-                self.budget.limits.max_bytes >> 20
+                "a {width} x {height} image does not fit in what is left of the {:.1} MiB a scene may take to load (--max-scene-memory-mb)",
+                self.budget.limits.max_bytes as f64 / (1u64 << 20) as f64
             ),
             e => e.to_string(),
         })?;

@@ -297,6 +297,9 @@ impl Doc {
     }
 
     /// Resolves an asset path relative to the scene's folder; refuses paths that leave it.
+    /// The path returned goes through the folder as it was given (with its canonical path
+    /// inside it): a folder reached through a descriptor (`/proc/self/fd/N`, a worker's
+    /// cache) stays that folder, whatever is renamed around it after the check.
     pub fn resolve_path(&self, pos: Pos, rel: &str) -> Result<PathBuf, SceneError> {
         let joined = self.dir.join(rel);
         let canon = joined
@@ -306,7 +309,7 @@ impl Doc {
             .dir
             .canonicalize()
             .map_err(|e| self.err(pos, format!("cannot open scene folder '{}': {e}", self.dir.display())))?;
-        if !canon.starts_with(&base) {
+        let Ok(inside) = canon.strip_prefix(&base) else {
             return Err(self.err(
                 pos,
                 format!(
@@ -314,8 +317,8 @@ impl Doc {
                     base.display()
                 ),
             ));
-        }
-        Ok(canon)
+        };
+        Ok(self.dir.join(inside))
     }
 }
 
