@@ -87,6 +87,10 @@ pub struct Coordinator {
     left_out: HashSet<String>,
     /// Held by whoever writes rows: one batch at a time, each taken when its writer starts.
     row_writer: Arc<Mutex<()>>,
+    /// Bundles of submissions whose scenes are loading (by ticket): a job deleted meanwhile
+    /// leaves their files.
+    loading: BTreeMap<u64, Bundle>,
+    tickets: u64,
 }
 
 fn now_secs() -> u64 {
@@ -381,6 +385,8 @@ impl Coordinator {
             unwritten: HashMap::new(),
             left_out: HashSet::new(),
             row_writer: Arc::new(Mutex::new(())),
+            loading: BTreeMap::new(),
+            tickets: 0,
         };
         for (key, id, request) in c.store.keys()? {
             c.keys.insert(key, (id, request));
@@ -556,6 +562,17 @@ impl Coordinator {
         }
     }
 
+    /// The hashes of the bundles and files that jobs in memory and loads under way use.
+    fn in_use(&self) -> HashSet<String> {
+        let bundles = self.jobs.values().map(|j| &j.spec.bundle).chain(self.loading.values());
+        let mut used = HashSet::new();
+        for b in bundles {
+            used.insert(b.hash());
+            used.extend(b.files.values().cloned());
+        }
+        used
+    }
+
     /// Whether some job's row is to be stored.
     pub fn rows_due(&self) -> bool {
         !self.dirty.is_empty()
@@ -569,7 +586,7 @@ impl Coordinator {
         if ops.is_empty() {
             return Ok(Vec::new());
         }
-        let result = self.store.write_rows(&ops);
+        let result = self.store.write_rows(&ops, &self.in_use());
         self.rows_written(&ops, &result);
         result
     }
@@ -1116,14 +1133,17 @@ pub fn sync_rows(coord: &Mutex<Coordinator>) -> Result<(), CoordError> {
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
     let writer = lock().row_writer.clone();
     let _turn = writer.lock().unwrap_or_else(|e| e.into_inner());
-    let (store, ops) = {
+    let (store, ops, keep) = {
         let mut c = lock();
-        (c.store.clone(), c.take_rows())
+        let ops = c.take_rows();
+        let keep =
+            if ops.iter().any(|op| matches!(op, RowOp::Delete(_))) { c.in_use() } else { HashSet::new() };
+        (c.store.clone(), ops, keep)
     };
     if ops.is_empty() {
         return Ok(());
     }
-    let result = store.write_rows(&ops);
+    let result = store.write_rows(&ops, &keep);
     lock().rows_written(&ops, &result);
     crate::store::remove_paths(&result?);
     Ok(())
@@ -1268,7 +1288,21 @@ pub fn submit(
     if let Some(id) = keyed(coord, key, &request)? {
         return Ok((id, false));
     }
-    let loader = lock().loader();
+    // Its bundle's files stay while it loads, whatever job is deleted meanwhile.
+    let (loader, ticket) = {
+        let mut c = lock();
+        c.tickets += 1;
+        let ticket = c.tickets;
+        c.loading.insert(ticket, spec.bundle.clone());
+        (c.loader(), ticket)
+    };
+    struct Loading<'a>(&'a Mutex<Coordinator>, u64);
+    impl Drop for Loading<'_> {
+        fn drop(&mut self) {
+            self.0.lock().unwrap_or_else(|e| e.into_inner()).loading.remove(&self.1);
+        }
+    }
+    let _loading = Loading(coord, ticket);
     // A load past the deadline stops there (its error says so): either way, nothing is submitted.
     let job = loader.submitted(spec, key, deadline);
     if deadline.is_some_and(|d| Instant::now() > d) {
@@ -1537,6 +1571,21 @@ mod tests {
         assert_eq!(keyed(&coord, Some("k2"), "h2").unwrap().as_deref(), Some("j2"));
         assert_eq!(stored_row(&dir, "j2"), Some((0, "queued".into())), "answered before its row was stored");
         assert_eq!(coord.lock().unwrap().lease("w", Instant::now()).map(|l| l.job).as_deref(), Some("j2"));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// Review of issue 14: deleting a job removed the bundle and files no stored row used,
+    /// though a submission loading the same bundle (not stored yet) needed them.
+    #[test]
+    fn a_delete_leaves_the_files_of_a_submission_still_loading() {
+        let (dir, coord) = stored("loading");
+        let bundle = coord.lock().unwrap().jobs["j"].spec.bundle.clone();
+        let laid_out = dir.join("bundles").join(bundle.hash());
+        std::fs::create_dir_all(&laid_out).unwrap();
+        coord.lock().unwrap().loading.insert(1, bundle.clone());
+        delete(&coord, "j").unwrap();
+        assert!(!dir.join("jobs/j").exists());
+        assert!(laid_out.is_dir(), "the bundle of a submission under way was removed");
         std::fs::remove_dir_all(&dir).ok();
     }
 

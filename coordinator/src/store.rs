@@ -61,7 +61,9 @@ pub trait Store: Send + Sync {
     /// Writes a batch of changes to the job rows at once, in order (a batch written in part
     /// is rolled back). Returns what to remove for the deleted jobs (with [`remove_paths`]): each one's
     /// folder, and its bundle and files when no job left uses them.
-    fn write_rows(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError>;
+    /// Bundles and files whose hash is in `keep` stay, whatever the rows say (jobs not
+    /// stored yet use them).
+    fn write_rows(&self, ops: &[RowOp], keep: &HashSet<String>) -> Result<Vec<PathBuf>, CoordError>;
     /// Every stored idempotency key: the job it names and the hash of the request it was
     /// first used with (none for rows of earlier versions).
     fn keys(&self) -> Result<Vec<(String, String, Option<String>)>, CoordError>;
@@ -239,7 +241,7 @@ impl DiskStore {
 
 impl DiskStore {
     /// [`Store::write_rows`] once the new folders are made: one transaction.
-    fn write_rows_in(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError> {
+    fn write_rows_in(&self, ops: &[RowOp], keep: &HashSet<String>) -> Result<Vec<PathBuf>, CoordError> {
         let mut db = self.db();
         let tx = db.transaction()?;
         let mut deleted = Vec::new();
@@ -291,12 +293,12 @@ impl DiskStore {
             gone.push(self.job_dir(id));
             let Some(bundle) = bundle else { continue };
             let hash = bundle.hash();
-            if !others.iter().any(|b| b.hash() == hash) {
+            if !keep.contains(&hash) && !others.iter().any(|b| b.hash() == hash) {
                 gone.push(self.bundle_dir(&hash));
                 gone.push(self.manifest_path(&hash));
             }
             for h in bundle.files.values() {
-                if !others.iter().any(|b| b.files.values().any(|o| o == h)) {
+                if !keep.contains(h) && !others.iter().any(|b| b.files.values().any(|o| o == h)) {
                     gone.push(self.file_path(h));
                 }
             }
@@ -359,7 +361,7 @@ impl Store for DiskStore {
             .collect())
     }
 
-    fn write_rows(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError> {
+    fn write_rows(&self, ops: &[RowOp], keep: &HashSet<String>) -> Result<Vec<PathBuf>, CoordError> {
         // Folders first: a row always has one (a job's files are written only into it).
         let new: Vec<PathBuf> = ops
             .iter()
@@ -372,7 +374,7 @@ impl Store for DiskStore {
             .iter()
             .try_for_each(|d| std::fs::create_dir_all(d.join("partials")))
             .map_err(CoordError::from)
-            .and_then(|()| self.write_rows_in(ops));
+            .and_then(|()| self.write_rows_in(ops, keep));
         if written.is_err() {
             for d in &new {
                 std::fs::remove_dir_all(d).ok();
@@ -644,7 +646,7 @@ impl Store for MemStore {
     fn jobs(&self) -> Result<Vec<Result<JobRow, (String, String)>>, CoordError> {
         Ok(self.rows().iter().map(|r| Ok(r.0.clone())).collect())
     }
-    fn write_rows(&self, ops: &[RowOp]) -> Result<Vec<PathBuf>, CoordError> {
+    fn write_rows(&self, ops: &[RowOp], _: &HashSet<String>) -> Result<Vec<PathBuf>, CoordError> {
         let mut held = self.rows();
         // All or nothing, as a transaction.
         let mut rows = held.clone();
@@ -812,14 +814,16 @@ mod tests {
             key: key.map(String::from),
             request: request.into(),
         };
-        store.write_rows(&[insert("b", 2, Some("key"), "h1"), insert("a", 1, None, "h2")]).unwrap();
+        store
+            .write_rows(&[insert("b", 2, Some("key"), "h1"), insert("a", 1, None, "h2")], &HashSet::new())
+            .unwrap();
         let mut b = row("b", 2);
         b.state = JobState::Running;
         b.spec.settings.priority = -7;
-        store.write_rows(&[RowOp::Update(b)]).unwrap();
+        store.write_rows(&[RowOp::Update(b)], &HashSet::new()).unwrap();
         // A batch that fails in part changes nothing.
         let twice = [RowOp::Delete("a".into()), insert("c", 3, Some("key"), "h3")];
-        assert!(store.write_rows(&twice).is_err(), "a key stored twice");
+        assert!(store.write_rows(&twice, &HashSet::new()).is_err(), "a key stored twice");
         let jobs: Vec<JobRow> = store.jobs().unwrap().into_iter().map(Result::unwrap).collect();
         let ids: Vec<&str> = jobs.iter().map(|r| r.id.as_str()).collect();
         if store.durable() {
@@ -830,7 +834,7 @@ mod tests {
         let b = jobs.iter().find(|r| r.id == "b").unwrap();
         assert_eq!((b.state, b.spec.settings.priority), (JobState::Running, -7));
         assert_eq!(store.keys().unwrap(), [("key".into(), "b".into(), Some("h1".into()))]);
-        store.write_rows(&[RowOp::Delete("b".into()), RowOp::Delete("b".into())]).unwrap();
+        store.write_rows(&[RowOp::Delete("b".into()), RowOp::Delete("b".into())], &HashSet::new()).unwrap();
         assert_eq!(store.keys().unwrap(), []);
         assert_eq!(store.jobs().unwrap().len(), 1);
     }
@@ -873,7 +877,7 @@ mod tests {
         std::fs::create_dir_all(dir.join("jobs/orphan/partials")).unwrap();
         let mut job = row("j", 1);
         job.spec.bundle.files.insert("s.xml".into(), used.clone());
-        s.write_rows(&[RowOp::Insert { row: job, key: None, request: "h".into() }]).unwrap();
+        s.write_rows(&[RowOp::Insert { row: job, key: None, request: "h".into() }], &HashSet::new()).unwrap();
         let hour = std::time::Duration::from_secs(3600);
         assert_eq!(s.collect_garbage(hour).unwrap(), 0, "recent files are kept");
         assert_eq!(s.collect_garbage(std::time::Duration::ZERO).unwrap(), 4);
@@ -881,7 +885,7 @@ mod tests {
         assert!(s.has_file(&used) && !s.has_file(&unused));
         assert!(!dir.join("files/not-a-hash").exists() && !dir.join("bundles/abandoned").exists());
         // Once its job is deleted, its files go too.
-        remove_paths(&s.write_rows(&[RowOp::Delete("j".into())]).unwrap());
+        remove_paths(&s.write_rows(&[RowOp::Delete("j".into())], &HashSet::new()).unwrap());
         assert!(!s.has_file(&used));
         std::fs::remove_dir_all(&dir).ok();
     }
@@ -904,7 +908,8 @@ mod tests {
     fn the_disk_store_keeps_a_jobs_files_consistent() {
         let dir = scratch("files");
         let s = DiskStore::open(&dir).unwrap();
-        s.write_rows(&[RowOp::Insert { row: row("j", 1), key: None, request: "h".into() }]).unwrap();
+        s.write_rows(&[RowOp::Insert { row: row("j", 1), key: None, request: "h".into() }], &HashSet::new())
+            .unwrap();
         for c in [3, 1, 2] {
             s.save_partial("j", c, &[c as u8]).unwrap();
         }
@@ -938,7 +943,7 @@ mod tests {
         );
         // A write racing the job's deletion fails; it does not bring the folder back.
         let s = DiskStore::open(&dir).unwrap();
-        let gone = s.write_rows(&[RowOp::Delete("j".into())]).unwrap();
+        let gone = s.write_rows(&[RowOp::Delete("j".into())], &HashSet::new()).unwrap();
         remove_paths(&gone);
         assert!(s.save_partial("j", 4, b"late").is_err());
         assert!(s.save_checkpoint("j", &bytes(b"late"), &[], None).is_err());

@@ -200,11 +200,10 @@ pub struct HttpLink {
     base: String,
     token: Option<String>,
     http: Client,
-    /// The cache folder, through the descriptor `_cache_dir` holds open (see `private_dir`).
-    cache: PathBuf,
-    /// Its name, for messages.
+    /// The cache folder, through the descriptor the file holds open (see `private_dir`).
+    cache: Mutex<(PathBuf, std::fs::File)>,
+    /// Its name, for messages (and to make it again if it is removed).
     cache_name: PathBuf,
-    _cache_dir: std::fs::File,
     scenes: Mutex<HashMap<String, Arc<Scene>>>,
     /// How long a lease request may wait at the coordinator for work.
     pub wait: Duration,
@@ -233,15 +232,26 @@ impl HttpLink {
             base,
             token,
             http,
-            cache,
+            cache: Mutex::new((cache, cache_dir)),
             cache_name,
-            _cache_dir: cache_dir,
             scenes,
             wait: Duration::from_secs(2),
             health_file: None,
             max_scene_bytes: furnace_core::FARM_SCENE_BYTES,
             health_written,
         })
+    }
+
+    /// The cache folder; made again (and checked again) if it was removed (a cleaner of
+    /// `/tmp`, say): the folder held open would take no new files.
+    fn cache_dir(&self) -> std::io::Result<PathBuf> {
+        use std::os::unix::fs::MetadataExt;
+        let mut cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
+        if cache.1.metadata()?.nlink() == 0 {
+            tracing::warn!("the cache folder {} was removed: making it again", self.cache_name.display());
+            *cache = private_dir(&self.cache_name)?;
+        }
+        Ok(cache.0.clone())
     }
 
     /// Notes an answer from the coordinator in the health file.
@@ -296,9 +306,10 @@ impl HttpLink {
         // then removed once the scene is in memory.
         static LOADS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let n = LOADS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let dir = self.cache.join("bundles").join(format!("{bundle_hash}.{}.{n}", std::process::id()));
+        let cache = self.cache_dir().map_err(|e| format!("cache {}: {e}", self.cache_name.display()))?;
+        let dir = cache.join("bundles").join(format!("{bundle_hash}.{}.{n}", std::process::id()));
         let cache_err = |p: &Path, e: std::io::Error| {
-            let shown = p.strip_prefix(&self.cache).map(|rel| self.cache_name.join(rel));
+            let shown = p.strip_prefix(&cache).map(|rel| self.cache_name.join(rel));
             format!("cache {}: {e}", shown.as_deref().unwrap_or(p).display())
         };
         match std::fs::symlink_metadata(&dir) {
@@ -308,7 +319,7 @@ impl HttpLink {
         }
         .map_err(|e| cache_err(&dir, e))?;
         for (path, hash) in &bundle.files {
-            let file = self.cache.join("files").join(hash);
+            let file = cache.join("files").join(hash);
             let bytes = match cached(&file, hash) {
                 Some(bytes) => bytes,
                 None => {
@@ -459,7 +470,12 @@ fn private_dir(dir: &Path) -> std::io::Result<(PathBuf, std::fs::File)> {
                     fd.set_permissions(std::fs::Permissions::from_mode(0o700))?;
                 }
                 let by_fd = PathBuf::from(format!("/proc/self/fd/{}", fd.as_raw_fd()));
-                let path = if by_fd.is_dir() { by_fd } else { dir };
+                let path = if by_fd.is_dir() {
+                    by_fd
+                } else {
+                    tracing::warn!("no /proc/self/fd here: the cache folder is used by its name");
+                    dir
+                };
                 return Ok((path, fd));
             }
         }
@@ -507,6 +523,21 @@ mod cache_tests {
             assert_eq!(std::fs::canonicalize(&dir).unwrap(), std::fs::canonicalize(&inside).unwrap());
             assert_eq!(std::fs::metadata(&inside).unwrap().mode() & 0o777, 0o700);
         }
+        std::fs::remove_dir_all(&root).ok();
+    }
+
+    /// Review of issue 14: a cache folder removed under a running worker (a cleaner of /tmp)
+    /// left it unable to load any scene until restarted: the folder it held open takes no
+    /// new files. It is made again.
+    #[test]
+    fn a_removed_cache_folder_is_made_again() {
+        let root = std::env::temp_dir().join(format!("furnace-cache-gone-{}", std::process::id()));
+        std::fs::remove_dir_all(&root).ok();
+        let link = HttpLink::new("http://127.0.0.1:9", None, root.join("cache")).unwrap();
+        std::fs::remove_dir_all(&root).unwrap();
+        let dir = link.cache_dir().unwrap();
+        write_file(&dir.join("files").join("f"), b"cached").unwrap();
+        assert_eq!(std::fs::read(root.join("cache/files/f")).unwrap(), b"cached");
         std::fs::remove_dir_all(&root).ok();
     }
 
