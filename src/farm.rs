@@ -379,7 +379,21 @@ pub fn status(a: StatusArgs) -> Result<()> {
     let api = Api::new(&a.coordinator, a.token)?;
     let all: Vec<JobStatus> = match &a.job {
         Some(id) => vec![api.status(id)?],
-        None => Api::check(api.req(reqwest::Method::GET, "/v1/jobs").send()?)?.json()?,
+        None => {
+            // A page at a time.
+            let mut all: Vec<JobStatus> = Vec::new();
+            loop {
+                let after = all.last().map(|s| format!("&after={}", s.id)).unwrap_or_default();
+                let path = format!("/v1/jobs?limit={}{after}", furnace_coordinator::api::MAX_LIST);
+                let page: Vec<JobStatus> =
+                    Api::check(api.req(reqwest::Method::GET, &path).send()?)?.json()?;
+                let last = page.len() < furnace_coordinator::api::MAX_LIST;
+                all.extend(page);
+                if last {
+                    break all;
+                }
+            }
+        }
     };
     for s in all {
         println!(

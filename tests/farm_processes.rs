@@ -612,6 +612,21 @@ fn idempotency_pause_resume_failures_preview_events_and_cancel() {
         assert_eq!(r.unwrap().status().as_u16(), 400, "{key:?}");
     }
     http.post(format!("{url}/v1/jobs/{}/cancel", id1["id"].as_str().unwrap())).send().unwrap();
+    // The list comes a page at a time, in order of id (three jobs by now).
+    let ids = |q: &str| -> Vec<String> {
+        let r = http.get(format!("{url}/v1/jobs{q}")).send().unwrap();
+        assert_eq!(r.status().as_u16(), 200, "{q}");
+        let page: Vec<serde_json::Value> = r.json().unwrap();
+        page.iter().map(|s| s["id"].as_str().unwrap().to_string()).collect()
+    };
+    let all = ids("");
+    assert_eq!(all.len(), 3);
+    assert!(all.windows(2).all(|w| w[0] < w[1]), "{all:?}");
+    assert_eq!(ids("?limit=2"), all[..2]);
+    assert_eq!(ids(&format!("?limit=2&after={}", all[1])), all[2..]);
+    for bad in ["?limit=0", "?limit=10001", "?limit=x", "?page=2"] {
+        assert_eq!(http.get(format!("{url}/v1/jobs{bad}")).send().unwrap().status().as_u16(), 400, "{bad}");
+    }
 
     let lease = |w: &str| -> Option<Lease> {
         let r = http.post(format!("{url}/v1/leases")).json(&serde_json::json!({"worker": w})).send().unwrap();

@@ -624,10 +624,31 @@ async fn post_job(
     Ok((status, Json(Submitted { id })).into_response())
 }
 
-async fn list_jobs(State(s): State<AppState>) -> ApiResult {
+/// Most jobs one `GET /v1/jobs` lists, and how many unless asked.
+pub const MAX_LIST: usize = 10_000;
+const LIST: usize = 1000;
+
+/// Jobs in order of id, a page at a time: `?limit=` (1000 unless given, at most 10000) after
+/// `?after=ID`; the next page starts after the last id of this one.
+async fn list_jobs(State(s): State<AppState>, RawQuery(q): RawQuery) -> ApiResult {
+    let (mut limit, mut after) = (LIST, None);
+    for kv in q.as_deref().unwrap_or("").split('&').filter(|kv| !kv.is_empty()) {
+        match kv.split_once('=') {
+            Some(("limit", v)) => {
+                limit = v
+                    .parse()
+                    .ok()
+                    .filter(|n| (1..=MAX_LIST).contains(n))
+                    .ok_or_else(|| CoordError::Invalid(format!("limit must be 1 to {MAX_LIST}")))?
+            }
+            Some(("after", v)) => after = Some(v.to_string()),
+            _ => return Err(CoordError::Invalid("GET /v1/jobs takes ?limit= and ?after= only".into()).into()),
+        }
+    }
     let c = s.lock();
-    let all: Result<Vec<_>, _> = c.job_ids().iter().map(|id| c.status(id)).collect();
-    Ok(Json(all?).into_response())
+    let page: Result<Vec<_>, _> =
+        c.job_ids_after(after.as_deref(), limit).iter().map(|id| c.status(id)).collect();
+    Ok(Json(page?).into_response())
 }
 
 async fn get_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {

@@ -992,6 +992,13 @@ impl Coordinator {
         self.jobs.keys().cloned().collect()
     }
 
+    /// At most `limit` job ids in order, those after `after` if given.
+    pub fn job_ids_after(&self, after: Option<&str>, limit: usize) -> Vec<String> {
+        use std::ops::Bound::{Excluded, Unbounded};
+        let from = after.map_or(Unbounded, |a| Excluded(a.to_string()));
+        self.jobs.range((from, Unbounded)).take(limit).map(|(id, _)| id.clone()).collect()
+    }
+
     /// The merged image so far.
     /// The job's image: developed from the accumulation, or (a finished job's) its result file.
     pub fn picture(&self, id: &str) -> Result<Picture, CoordError> {
