@@ -220,6 +220,19 @@ impl Net {
         Ok(())
     }
 
+    /// Bytes waiting in worker `k`'s outgoing queue (its slow link's tbf): an upload under way.
+    fn backlog(&self, k: usize) -> u64 {
+        let dev = format!("fz{}w{k}", std::process::id() % 100_000);
+        let out = Command::new("ip")
+            .args(["netns", "exec", &self.w[k], "tc", "-s", "qdisc", "show", "dev", &dev])
+            .output()
+            .map(|o| String::from_utf8_lossy(&o.stdout).to_string())
+            .unwrap_or_default();
+        let words: Vec<&str> = out.split_whitespace().collect();
+        let at = words.iter().position(|w| *w == "backlog");
+        at.and_then(|i| words.get(i + 1)).and_then(|b| b.trim_end_matches('b').parse().ok()).unwrap_or(0)
+    }
+
     /// Cuts worker `k`'s cable (its link goes down: what its queue holds is dropped and
     /// nothing passes either way), or plugs it back in.
     fn partition(&self, k: usize, cut: bool) -> Result<(), String> {
@@ -301,7 +314,7 @@ fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
     assert!(!net.delay || took >= 4 * DELAY, "a health check over the delayed cable took {took:?}");
     eprintln!("a health check from w1's namespace: {took:?}");
     // Submitted from this namespace, over the link to c.
-    let (spp, scene) = ("4096", scenes().join("small.xml"));
+    let (spp, scene) = ("8192", scenes().join("small.xml"));
     let out = Command::new(BIN)
         .arg("submit")
         .arg(&scene)
@@ -315,7 +328,7 @@ fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
             "--tile",
             "16",
             "--spp-per-chunk",
-            "256",
+            "512",
         ])
         .env("NO_PROXY", "*")
         .output()
@@ -346,9 +359,12 @@ fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
         )
     };
     let (_w0, _w1) = (worker(0), worker(1));
-    // The slow worker is cut off once it has handed in two chunks: its next upload is then
-    // under way (uploads are most of its time), and its leases expire during the cut.
+    // The slow worker is cut off once it has handed in two chunks, in the middle of an upload:
+    // its link's queue holds 6 KB of it, most of a second at 64 kbit (cut at the very end of
+    // an upload, the coordinator would take it and only its answer would be held up). Its
+    // lease expires during the cut.
     wait_for("w0 hands in 2 chunks", Duration::from_secs(60), || chunks_done(&url, "w0") >= 2);
+    wait_for("w0 uploads", Duration::from_secs(30), || net.backlog(0) >= 6000);
     net.partition(0, true).unwrap();
     // A merge of an upload whose last bytes got through just before the cut may still be
     // under way.
@@ -367,11 +383,12 @@ fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
     let r = http().get(format!("{url}/v1/jobs/{job}/result.exr")).bearer_auth(TOKEN).send().unwrap();
     assert!(r.status().is_success());
     let farm = r.bytes().unwrap().to_vec();
-    // What the cut did to the worker in its own words: an upload or heartbeat that hung on
-    // the dead link and was refused or failed once it healed (its lease had gone to w1).
+    // What the cut did to the worker in its own words: an upload that hung on the dead link
+    // and failed or was refused once it healed, or a render whose lease was gone by then
+    // (refused at its first heartbeat after the cut: its lease had gone to w1).
     let log = std::fs::read_to_string(dir.join("w0.log")).unwrap();
-    let hit: Vec<&str> =
-        log.lines().filter(|l| l.contains("upload") || l.contains("unreachable")).take(3).collect();
+    let noticed = |l: &&str| l.contains("upload") || l.contains("unreachable") || l.contains("lease lost");
+    let hit: Vec<&str> = log.lines().filter(noticed).take(3).collect();
     eprintln!("w0 after the cut: {hit:?}");
     assert!(!hit.is_empty(), "the cut worker never noticed the cut");
     let status = get_json(&format!("{url}/v1/jobs/{job}"));

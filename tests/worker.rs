@@ -85,3 +85,70 @@ fn a_revoked_lease_stops_the_render_mid_chunk() {
     assert_eq!((link.uploads.load(Ordering::SeqCst), link.failures.load(Ordering::SeqCst)), (0, 0));
     assert!(took < whole / 4.0, "stopped after {took:.2} s; the whole chunk takes about {whole:.2} s");
 }
+
+/// Hands out one small chunk whose upload crawls (a slow link): 1 s, 8 leases long.
+struct SlowUpload {
+    scene: Arc<Scene>,
+    handed: AtomicBool,
+    uploading: AtomicBool,
+    beats_while_uploading: AtomicU32,
+}
+
+impl Link for SlowUpload {
+    fn lease(&self, _: &str) -> Result<Option<Lease>, String> {
+        if self.handed.swap(true, Ordering::SeqCst) {
+            return Ok(None);
+        }
+        let region = Region { x0: 0, y0: 0, x1: 4, y1: 4, s0: 0, s1: 1 };
+        Ok(Some(Lease {
+            job: "j".into(),
+            chunk: ChunkSpec { id: 0, region },
+            epoch: 1,
+            settings: JobSettings::default(),
+            bundle_hash: String::new(),
+            deadline_ms: 120,
+        }))
+    }
+    fn heartbeat(&self, _: &Lease) -> bool {
+        if self.uploading.load(Ordering::SeqCst) {
+            self.beats_while_uploading.fetch_add(1, Ordering::SeqCst);
+        }
+        true
+    }
+    fn scene(&self, _: &Lease) -> Result<Arc<Scene>, String> {
+        Ok(self.scene.clone())
+    }
+    fn upload(&self, _: &Lease, _: &Accum, _: &Stats) -> Uploaded {
+        self.uploading.store(true, Ordering::SeqCst);
+        std::thread::sleep(Duration::from_secs(1));
+        self.uploading.store(false, Ordering::SeqCst);
+        Uploaded::Accepted
+    }
+    fn fail(&self, _: &Lease, _: &str) {}
+}
+
+/// Found by the namespace test: heartbeats stopped when a chunk's render ended, so over a slow
+/// link a lease expired during its upload and the chunk was refused and rendered again. The
+/// lease is now kept alive while uploading.
+#[test]
+fn a_lease_is_kept_alive_while_its_upload_crawls() {
+    let link = Arc::new(SlowUpload {
+        scene: Arc::new(load("small.xml", &[])),
+        handed: AtomicBool::new(false),
+        uploading: AtomicBool::new(false),
+        beats_while_uploading: AtomicU32::new(0),
+    });
+    let cfg = WorkerConfig {
+        link: link.clone(),
+        threads: 1,
+        slots: 1,
+        name: "w".into(),
+        poll: Duration::from_millis(10),
+        stop: Arc::new(AtomicBool::new(false)),
+        exit_when_idle: true,
+    };
+    assert_eq!(furnace_worker::run(cfg).unwrap(), 1);
+    // A heartbeat every 40 ms: about 25 in the second the upload takes.
+    let beats = link.beats_while_uploading.load(Ordering::SeqCst);
+    assert!(beats >= 10, "{beats} heartbeats while uploading");
+}

@@ -707,18 +707,17 @@ async fn result(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult 
 
 async fn control(State(s): State<AppState>, Path((id, action)): Path<(String, String)>) -> ApiResult {
     let coord = s.coord.clone();
-    let id2 = id.clone();
-    blocking(move || crate::state::control(&coord, &id2, &action)).await??;
+    let status = blocking(move || crate::state::control(&coord, &id, &action)).await??;
     s.new_work();
-    Ok(Json(s.lock().status(&id)?).into_response())
+    Ok(Json(status).into_response())
 }
 
 async fn priority(State(s): State<AppState>, Path(id): Path<String>, body: Bytes) -> ApiResult {
     let p: Priority = json_body(&body, "priority")?;
-    let (coord, id2) = (s.coord.clone(), id.clone());
-    blocking(move || crate::state::set_priority(&coord, &id2, p.priority)).await??;
+    let coord = s.coord.clone();
+    let status = blocking(move || crate::state::set_priority(&coord, &id, p.priority)).await??;
     s.new_work();
-    Ok(Json(s.lock().status(&id)?).into_response())
+    Ok(Json(status).into_response())
 }
 
 async fn lease(State(s): State<AppState>, body: Bytes) -> ApiResult {

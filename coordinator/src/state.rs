@@ -182,6 +182,20 @@ impl Loader {
         created: u64,
         deadline: Option<Instant>,
     ) -> Result<Job, CoordError> {
+        // What the load freed (the scene too, unless kept) goes back to the system: the
+        // allocator would keep it (a PLY loader's many small blocks, across threads), and loads
+        // one after another would add up.
+        struct Trim;
+        impl Drop for Trim {
+            fn drop(&mut self) {
+                #[cfg(all(target_os = "linux", target_env = "gnu"))]
+                // SAFETY: malloc_trim only returns free memory to the system.
+                unsafe {
+                    libc::malloc_trim(0);
+                }
+            }
+        }
+        let _trim = Trim;
         let scene = self.load_bundle(&spec.bundle, deadline)?;
         self.job_from_scene(id, spec, state, created, Arc::new(scene))
     }
@@ -1244,11 +1258,17 @@ fn bring_back(coord: &Mutex<Coordinator>, id: &str) -> Result<(), CoordError> {
 /// Cancels, pauses or resumes a job. A cancelled job ends like a finished one: its image so
 /// far, its checkpoint and its final status are stored (outside the lock) and its memory
 /// released; its preview stays. A job set aside is loaded again first.
-pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(), CoordError> {
+/// Returns the job's status as the change left it (a request racing it, a delete say, does not
+/// change the answer).
+pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<JobStatus, CoordError> {
     if matches!(action, "resume" | "cancel") {
         bring_back(coord, id)?;
     }
-    let snap = coord.lock().unwrap_or_else(|e| e.into_inner()).control(id, action)?;
+    let (snap, status) = {
+        let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
+        let snap = c.control(id, action)?;
+        (snap, c.status(id)?)
+    };
     if let Err(e) = write_checkpoints(coord, snap) {
         // The job stays cancelled; its memory goes at the next retry or start (unless it was
         // deleted meanwhile, which is why its folder is gone).
@@ -1256,13 +1276,18 @@ pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(),
             tracing::error!(job = %id, "cannot store the cancelled job: {e}");
         }
     }
-    sync_rows(coord)
+    sync_rows(coord).map(|()| status)
 }
 
-/// Sets a job's priority and stores it, without the lock.
-pub fn set_priority(coord: &Mutex<Coordinator>, id: &str, priority: i32) -> Result<(), CoordError> {
-    coord.lock().unwrap_or_else(|e| e.into_inner()).reprioritise(id, priority)?;
-    sync_rows(coord)
+/// Sets a job's priority and stores it, without the lock; returns the job's status as the
+/// change left it.
+pub fn set_priority(coord: &Mutex<Coordinator>, id: &str, priority: i32) -> Result<JobStatus, CoordError> {
+    let status = {
+        let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
+        c.reprioritise(id, priority)?;
+        c.status(id)?
+    };
+    sync_rows(coord).map(|()| status)
 }
 
 /// Deletes a job: forgotten under the lock (its leases refused from then on), its row, folder

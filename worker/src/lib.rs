@@ -103,13 +103,13 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
         }
     };
     let t = std::time::Instant::now();
-    // Heartbeats while rendering, a third of the lease apart. A lease that is gone (revoked by
-    // a cancel or a delete, or given to another worker) stops the render: its result would be
-    // refused.
+    // Heartbeats while rendering and uploading, a third of the lease apart (an upload over a
+    // slow link may take longer than a lease). A lease that is gone (revoked by a cancel or a
+    // delete, or given to another worker) stops the render: its result would be refused.
     let (tx, rx) = mpsc::channel::<()>();
     let every = Duration::from_millis((lease.deadline_ms / 3).max(50));
     let lost = AtomicBool::new(false);
-    let rendered = std::thread::scope(|s| {
+    std::thread::scope(|s| {
         let lost = &lost;
         s.spawn(move || {
             while let Err(mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
@@ -119,20 +119,31 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
                 }
             }
         });
-        // A panic while rendering is this chunk's failure, reported with its message; the
-        // worker lives on.
-        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            pool.install(|| {
-                render_region_parallel_until(&scene, &lease.chunk.region, lease.settings.seed, lost)
-            })
-        }));
+        let done = render_and_upload(link, pool, &scene, lease, lost, t);
         drop(tx);
-        r
-    });
+        done
+    })
+}
+
+/// The part of [`work`] under heartbeats.
+fn render_and_upload(
+    link: &dyn Link,
+    pool: &rayon::ThreadPool,
+    scene: &Scene,
+    lease: &Lease,
+    lost: &AtomicBool,
+    t: std::time::Instant,
+) -> bool {
+    // A panic while rendering is this chunk's failure, reported with its message; the worker
+    // lives on.
+    let rendered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        pool.install(|| render_region_parallel_until(scene, &lease.chunk.region, lease.settings.seed, lost))
+    }));
     let (acc, st) = match rendered {
         Ok(Some(r)) => r,
         Ok(None) => {
-            tracing::info!(job = %lease.job, chunk = lease.chunk.id, "lease lost while rendering: chunk dropped");
+            // Work thrown away: worth a warning.
+            tracing::warn!(job = %lease.job, chunk = lease.chunk.id, "lease lost while rendering: chunk dropped");
             return false;
         }
         Err(panic) => {
@@ -159,6 +170,11 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
                 return false;
             }
             Uploaded::Retry(e) => tracing::warn!("upload failed ({e}); retrying"),
+        }
+        // A lease lost meanwhile: the upload would be refused.
+        if lost.load(Ordering::SeqCst) {
+            tracing::warn!(job = %lease.job, chunk = lease.chunk.id, "lease lost while uploading: chunk dropped");
+            return false;
         }
         std::thread::sleep(backoff.next());
     }
@@ -337,8 +353,11 @@ impl HttpLink {
         let limits = furnace_core::LoadLimits { max_bytes: self.max_scene_bytes, ..Default::default() };
         // Errors name files by their paths in the bundle.
         let inside = format!("{}/", dir.display());
-        let scene = Scene::load_with(&dir.join(&bundle.scene), &[], &limits)
-            .map_err(|e| e.to_string().replace(&inside, ""));
+        let scene = Scene::load_with(&dir.join(&bundle.scene), &[], &limits).map_err(|e| {
+            let e = e.to_string().replace(&inside, "");
+            // The limit named is this worker's own.
+            e.replace("(--max-scene-memory-mb)", "(this worker's --max-scene-memory-mb)")
+        });
         std::fs::remove_dir_all(&dir).ok();
         scene
     }
@@ -468,6 +487,16 @@ fn private_dir(dir: &Path) -> std::io::Result<(PathBuf, std::fs::File)> {
             _ => {
                 if m.mode() & 0o077 != 0 {
                     fd.set_permissions(std::fs::Permissions::from_mode(0o700))?;
+                }
+                // A parent others may write into (not sticky) can rename the folder: harmless
+                // here (it is used through its descriptor), but worth saying.
+                if let Some(p) = dir.parent().and_then(|p| std::fs::metadata(p).ok()) {
+                    if p.mode() & 0o002 != 0 && p.mode() & 0o1000 == 0 {
+                        tracing::warn!(
+                            "{}: its folder may be written by anyone and is not sticky",
+                            dir.display()
+                        );
+                    }
                 }
                 let by_fd = PathBuf::from(format!("/proc/self/fd/{}", fd.as_raw_fd()));
                 let path = if by_fd.is_dir() {

@@ -43,7 +43,7 @@ pub fn check_film_size(width: u32, height: u32) -> Result<(), String> {
 // What a load holds, estimated before each part is read. Measured with a counting allocator
 // (docs/BENCHMARKS.md, "Scene loading: memory"): a 7.3 MB scene of 40,000 spheres peaks at 16
 // bytes per byte of XML; a 4096 x 4096 PNG at 27 bytes a texel; OBJ at 7.1 and curve files at
-// 3.5 bytes per byte of file, PLY at 17 (text) to 29 (binary); the BVH's build at 344 bytes a
+// 3.5 bytes per byte of file (PLY: see `ply_load_estimate`); the BVH's build at 344 bytes a
 // primitive, keeping 54 (triangles) or 16 (curve segments).
 /// What a load holds whatever the scene.
 const BASE: u64 = 1 << 20;
@@ -60,8 +60,6 @@ const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
 const ENVMAP_TEXEL: u64 = 16;
 /// What the OBJ and curve loaders hold per byte of their file while parsing.
 const PARSE_PER_BYTE: u64 = 12;
-/// What the PLY loader holds per byte of its file (its parser makes a map per element).
-const PLY_PER_BYTE: u64 = 40;
 /// What building the BVH holds at its peak per primitive, and what it keeps.
 const BVH_BUILD_PER_PRIM: u64 = 384;
 const BVH_KEPT_PER_PRIM: u64 = 64;
@@ -198,7 +196,7 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
             prims.saturating_mul(BVH_BUILD_PER_PRIM),
             prims.saturating_mul(BVH_KEPT_PER_PRIM),
         )
-        .map_err(|e| doc.err(doc.obj(root).pos, e))?;
+        .map_err(|e| SceneError::file(&doc.file, e))?;
     let accel = Accel::build(if b.budget.limits.accel { &b.shapes } else { &[] });
     let mut scene = Scene {
         file: doc.file.clone(),
@@ -906,8 +904,11 @@ impl Builder<'_> {
                 let fpos = doc.pos_of(i, "filename");
                 let path = doc.resolve_path(fpos, &rel)?;
                 let face_normals = doc.boolean_or(i, "face_normals", false)?;
-                let per_byte = if o.plugin == "ply" { PLY_PER_BYTE } else { PARSE_PER_BYTE };
-                let parse = file_size(&path).saturating_mul(per_byte);
+                let parse = if o.plugin == "ply" {
+                    crate::geometry::mesh::ply_load_estimate(&path)
+                } else {
+                    file_size(&path).saturating_mul(PARSE_PER_BYTE)
+                };
                 self.budget.charge(&format!("mesh '{rel}'"), parse, 0).map_err(|e| self.err(fpos, e))?;
                 let loaded = if o.plugin == "obj" {
                     let flip_v = doc.boolean_or(i, "flip_tex_coords", true)?;
