@@ -11,6 +11,21 @@ use furnace_core::{Accum, Region, Scene, Stats};
 use furnace_proto::{ChunkSpec, JobSettings, Lease, Link, Uploaded};
 use furnace_worker::WorkerConfig;
 
+/// The one lease of a scripted coordinator (none once `handed`): chunk 0 of job "j".
+fn lease_once(handed: &AtomicBool, region: Region, deadline_ms: u64) -> Option<Lease> {
+    if handed.swap(true, Ordering::SeqCst) {
+        return None;
+    }
+    Some(Lease {
+        job: "j".into(),
+        chunk: ChunkSpec { id: 0, region },
+        epoch: 1,
+        settings: JobSettings::default(),
+        bundle_hash: String::new(),
+        deadline_ms,
+    })
+}
+
 /// Hands out one long chunk whose lease is gone at the first heartbeat (its job cancelled).
 struct Revoked {
     scene: Arc<Scene>,
@@ -22,18 +37,7 @@ struct Revoked {
 
 impl Link for Revoked {
     fn lease(&self, _: &str) -> Result<Option<Lease>, String> {
-        if self.handed.swap(true, Ordering::SeqCst) {
-            return Ok(None);
-        }
-        let region = Region { x0: 0, y0: 0, x1: 48, y1: 40, s0: 0, s1: 4096 };
-        Ok(Some(Lease {
-            job: "j".into(),
-            chunk: ChunkSpec { id: 0, region },
-            epoch: 1,
-            settings: JobSettings::default(),
-            bundle_hash: String::new(),
-            deadline_ms: 150,
-        }))
+        Ok(lease_once(&self.handed, Region { x0: 0, y0: 0, x1: 48, y1: 40, s0: 0, s1: 4096 }, 150))
     }
     fn heartbeat(&self, _: &Lease) -> bool {
         self.heartbeats.fetch_add(1, Ordering::SeqCst);
@@ -96,18 +100,7 @@ struct SlowUpload {
 
 impl Link for SlowUpload {
     fn lease(&self, _: &str) -> Result<Option<Lease>, String> {
-        if self.handed.swap(true, Ordering::SeqCst) {
-            return Ok(None);
-        }
-        let region = Region { x0: 0, y0: 0, x1: 4, y1: 4, s0: 0, s1: 1 };
-        Ok(Some(Lease {
-            job: "j".into(),
-            chunk: ChunkSpec { id: 0, region },
-            epoch: 1,
-            settings: JobSettings::default(),
-            bundle_hash: String::new(),
-            deadline_ms: 120,
-        }))
+        Ok(lease_once(&self.handed, Region { x0: 0, y0: 0, x1: 4, y1: 4, s0: 0, s1: 1 }, 120))
     }
     fn heartbeat(&self, _: &Lease) -> bool {
         if self.uploading.load(Ordering::SeqCst) {
