@@ -21,12 +21,18 @@ fn open_coordinator(data: &Path) -> Mutex<Coordinator> {
     Mutex::new(c)
 }
 
-/// Stores small.xml's files in the coordinator and submits a job; returns its id.
-fn submit_small(coord: &Mutex<Coordinator>, scene: &Scene, settings: JobSettings) -> String {
+/// Stores small.xml's files in the coordinator; returns its bundle.
+fn store_small(coord: &Mutex<Coordinator>, scene: &Scene) -> Bundle {
     let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), scene).unwrap();
     for (rel, path) in files {
         coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
     }
+    bundle
+}
+
+/// Stores small.xml's files in the coordinator and submits a job; returns its id.
+fn submit_small(coord: &Mutex<Coordinator>, scene: &Scene, settings: JobSettings) -> String {
+    let bundle = store_small(coord, scene);
     state::submit(coord, JobSpec { bundle, settings }, None, None).unwrap().0
 }
 
@@ -232,10 +238,7 @@ fn corrupt_stored_files_are_quarantined_and_their_chunks_render_again() {
         assert!(matches!(coord.lock().unwrap().status(id), Err(CoordError::Unknown(_))));
     }
     // The files come back (as a user would restore them): both jobs are back.
-    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-    for (rel, path) in files {
-        coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
-    }
+    store_small(&coord, &scene);
     drop(coord);
     let coord = open_coordinator(&data);
     {
@@ -359,10 +362,7 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
     // A load that ends after its request's time is up (its client answered 408) submits
     // nothing: no job appears after its client was told the submission failed.
     let scene = load("small.xml", &[]);
-    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-    for (rel, path) in files {
-        coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
-    }
+    let bundle = store_small(&coord, &scene);
     let spec =
         JobSpec { bundle, settings: JobSettings { spp: 1, width: 0, height: 0, ..JobSettings::default() } };
     let jobs = coord.lock().unwrap().job_ids().len();
@@ -494,7 +494,7 @@ fn idle_paused_jobs_are_set_aside_and_come_back_when_resumed() {
         height: 0,
         ..Default::default()
     };
-    let job = submit_small(&coord, &scene, settings);
+    let job = submit_small(&coord, &scene, settings.clone());
     assert_eq!(render_leases(&coord, &scene, 7), 7);
     let in_flight = coord.lock().unwrap().lease("slow", Instant::now()).unwrap();
     control(&coord, &job, "pause").unwrap();
@@ -538,16 +538,7 @@ fn idle_paused_jobs_are_set_aside_and_come_back_when_resumed() {
     assert_eq!(st.render_stats, expected, "statistics lost on the way");
     drop(c);
     // Cancelled while set aside: loaded again, then ended with its image so far.
-    let settings = JobSettings {
-        spp: 4,
-        tile_size: 8,
-        spp_per_chunk: 2,
-        seed: 6,
-        width: 0,
-        height: 0,
-        ..Default::default()
-    };
-    let other = submit_small(&coord, &scene, settings);
+    let other = submit_small(&coord, &scene, JobSettings { seed: 6, ..settings });
     render_leases(&coord, &scene, 3);
     control(&coord, &other, "pause").unwrap();
     let image = coord.lock().unwrap().image(&other).unwrap();
@@ -572,10 +563,7 @@ fn chunks_too_big_to_upload_and_jobs_over_the_memory_cap_are_refused() {
     let coord = open_coordinator(&dir.join("data"));
     coord.lock().unwrap().max_partial = 100_000;
     let settings = JobSettings { spp: 1, tile_size: 64, width: 0, height: 0, ..Default::default() };
-    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-    for (rel, path) in files {
-        coord.lock().unwrap().store().put_file(&bundle.files[&rel], &std::fs::read(path).unwrap()).unwrap();
-    }
+    let bundle = store_small(&coord, &scene);
     let spec = |settings: &JobSettings| JobSpec { bundle: bundle.clone(), settings: settings.clone() };
     let e = state::submit(&coord, spec(&settings), None, None).unwrap_err();
     assert!(matches!(&e, CoordError::Unrenderable(m) if m.contains("smaller tile_size")), "{e:?}");
@@ -648,10 +636,7 @@ fn concurrent_submissions_of_one_bundle_leave_its_files_intact() {
     let dir = scratch("coord-concurrent");
     let coord = std::sync::Arc::new(open_coordinator(&dir.join("data")));
     let scene = load("small.xml", &[]);
-    let (bundle, files) = Bundle::of_scene(&scenes().join("small.xml"), &scene).unwrap();
-    for (rel, path) in &files {
-        coord.lock().unwrap().store().put_file(&bundle.files[rel], &std::fs::read(path).unwrap()).unwrap();
-    }
+    let bundle = store_small(&coord, &scene);
     let settings = JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() };
     let threads: Vec<_> = (0..4)
         .map(|_| {

@@ -26,6 +26,19 @@ fn lease_once(handed: &AtomicBool, region: Region, deadline_ms: u64) -> Option<L
     })
 }
 
+/// A worker of one thread and one slot that stops when `link` has no more work.
+fn one_thread(link: Arc<dyn Link>) -> WorkerConfig {
+    WorkerConfig {
+        link,
+        threads: 1,
+        slots: 1,
+        name: "w".into(),
+        poll: Duration::from_millis(10),
+        stop: Arc::new(AtomicBool::new(false)),
+        exit_when_idle: true,
+    }
+}
+
 /// Hands out one long chunk whose lease is gone at the first heartbeat (its job cancelled).
 struct Revoked {
     scene: Arc<Scene>,
@@ -73,15 +86,7 @@ fn a_revoked_lease_stops_the_render_mid_chunk() {
         uploads: AtomicU32::new(0),
         failures: AtomicU32::new(0),
     });
-    let cfg = WorkerConfig {
-        link: link.clone(),
-        threads: 1,
-        slots: 1,
-        name: "w".into(),
-        poll: Duration::from_millis(10),
-        stop: Arc::new(AtomicBool::new(false)),
-        exit_when_idle: true,
-    };
+    let cfg = one_thread(link.clone());
     let t = Instant::now();
     assert_eq!(furnace_worker::run(cfg).unwrap(), 0, "no chunk counts as done");
     let took = t.elapsed().as_secs_f64();
@@ -131,15 +136,7 @@ fn a_lease_is_kept_alive_while_its_upload_crawls() {
         uploading: AtomicBool::new(false),
         beats_while_uploading: AtomicU32::new(0),
     });
-    let cfg = WorkerConfig {
-        link: link.clone(),
-        threads: 1,
-        slots: 1,
-        name: "w".into(),
-        poll: Duration::from_millis(10),
-        stop: Arc::new(AtomicBool::new(false)),
-        exit_when_idle: true,
-    };
+    let cfg = one_thread(link.clone());
     assert_eq!(furnace_worker::run(cfg).unwrap(), 1);
     // A heartbeat every 40 ms: about 25 in the second the upload takes.
     let beats = link.beats_while_uploading.load(Ordering::SeqCst);
