@@ -151,12 +151,13 @@ fn render(a: RenderArgs) -> Result<()> {
     let t0 = Instant::now();
     let scene = Scene::load(&a.scene, &defines)?;
     tracing::info!(
-        "loaded {} in {:.2}s: {} shapes, {} primitives, {} lights",
+        "loaded {} in {:.2}s: {} shapes, {} primitives, {} lights; tracing with an {}",
         a.scene.display(),
         t0.elapsed().as_secs_f64(),
         scene.shapes.len(),
         scene.accel.prim_count(),
-        scene.lights.len()
+        scene.lights.len(),
+        scene.accel.kernel().name()
     );
     if a.plan {
         print!("{}", scene.plan);

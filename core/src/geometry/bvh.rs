@@ -1,9 +1,17 @@
-//! One obvhs compressed wide BVH (CWBVH) over every primitive of every shape.
+//! Furnace's wide BVH. obvhs builds a binary BVH (PLOC, reinsertion, and a SAH collapse of
+//! leaves to at most [`LEAF_MAX`] primitives); we collapse that into nodes of eight children
+//! whose boxes are stored as structure of arrays, so that one ray tests all eight at once:
+//! with AVX where the CPU has it, SSE on any other x86-64, plain code elsewhere ([`Kernel`]).
+//! Every kernel computes the same IEEE operations in the same order (no fused multiply-add),
+//! so the choice changes speed, never an image. Closest-hit traversal visits children nearest
+//! first and skips any whose entry distance is past the closest hit so far; shadow rays stop at
+//! the first hit.
+
+use std::mem::MaybeUninit;
 
 use glam::{Vec2, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
-use obvhs::cwbvh::builder::build_cwbvh;
-use obvhs::cwbvh::CwBvh;
+use obvhs::bvh2::builder::build_bvh2;
 use obvhs::BvhBuildParams;
 
 use super::{intersect_triangle, Geometry, Interaction, Ray, RayPre, Shape};
@@ -23,6 +31,77 @@ const TRIANGLE: u32 = 1 << 31;
 /// Primitive count above which the BVH is built with obvhs' very fast settings.
 const FAST_BUILD_ABOVE: usize = 1 << 21;
 
+/// Children per node.
+const WIDTH: usize = 8;
+/// Most primitives in a leaf.
+const LEAF_MAX: u32 = 4;
+/// A child reference with this bit set is a leaf: `count - 1` in the next three bits, the first
+/// primitive (in leaf order) in the low 28.
+const LEAF: u32 = 1 << 31;
+const FIRST_BITS: u32 = 28;
+/// Most primitives one BVH can name.
+pub const MAX_PRIMS: usize = 1 << FIRST_BITS;
+
+/// Stack entries kept on the call stack; deeper trees (which only degenerate input makes) use
+/// a heap stack.
+const INLINE_STACK: usize = 512;
+
+/// Eight child boxes, quantised to 8 bits a plane against the node's own box (as in Ylitie et
+/// al. 2017's compressed wide BVH): along axis `a`, child `i`'s lower plane is
+/// `origin[a] + planes[2 * a][i] * scale[a]` and its upper `planes[2 * a + 1]`, computed in f32
+/// exactly so in traversal and checked at build to enclose the child's box. `scale` is a power
+/// of two. Lanes not in `used` hold no child. 112 bytes, 14 a child.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+struct Node {
+    origin: [f32; 3],
+    used: u32,
+    scale: [f32; 4],
+    planes: [[u8; WIDTH]; 6],
+    child: [u32; WIDTH],
+}
+
+const EMPTY_NODE: Node =
+    Node { origin: [0.0; 3], used: 0, scale: [1.0; 4], planes: [[0; WIDTH]; 6], child: [0; WIDTH] };
+
+impl Node {
+    /// The node over `boxes` (each child's lower and upper corner).
+    fn quantise(boxes: &[(Vec3A, Vec3A)]) -> Node {
+        let mut node = EMPTY_NODE;
+        let lo = boxes.iter().fold(Vec3A::INFINITY, |m, b| m.min(b.0));
+        let hi = boxes.iter().fold(Vec3A::NEG_INFINITY, |m, b| m.max(b.1));
+        for a in 0..3 {
+            let decode = |origin: f32, scale: f32, q: u32| origin + q as f32 * scale;
+            // The smallest power of two whose 255 steps from `lo` reach `hi` in f32.
+            let mut scale = f32::MIN_POSITIVE;
+            let extent = hi[a] - lo[a];
+            if extent > 0.0 {
+                scale = 2f32.powi((extent / 255.0).log2().ceil() as i32).max(f32::MIN_POSITIVE);
+            }
+            while decode(lo[a], scale, 255) < hi[a] {
+                scale *= 2.0;
+            }
+            node.origin[a] = lo[a];
+            node.scale[a] = scale;
+            for (i, b) in boxes.iter().enumerate() {
+                let mut ql = (((b.0[a] - lo[a]) as f64 / scale as f64).floor() as u32).min(255);
+                while ql > 0 && decode(lo[a], scale, ql) > b.0[a] {
+                    ql -= 1;
+                }
+                let mut qh = (((b.1[a] - lo[a]) as f64 / scale as f64).ceil() as u32).min(255);
+                while qh < 255 && decode(lo[a], scale, qh) < b.1[a] {
+                    qh += 1;
+                }
+                debug_assert!(decode(lo[a], scale, ql) <= b.0[a] && decode(lo[a], scale, qh) >= b.1[a]);
+                node.planes[2 * a][i] = ql as u8;
+                node.planes[2 * a + 1][i] = qh as u8;
+            }
+        }
+        node.used = (1 << boxes.len()) - 1;
+        node
+    }
+}
+
 /// A triangle's vertices packed for traversal, and its index in the mesh.
 #[derive(Clone, Copy, Debug)]
 struct PackedTri {
@@ -30,18 +109,235 @@ struct PackedTri {
     index: u32,
 }
 
+/// The instruction set that tests a node's eight boxes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernel {
+    /// 8 lanes in one 256-bit register (AVX2).
+    Avx,
+    /// 8 lanes in two 128-bit registers (every x86-64 CPU).
+    Sse,
+    /// A loop over the lanes.
+    Scalar,
+}
+
+impl Kernel {
+    /// The fastest kernel this CPU runs.
+    pub fn detect() -> Kernel {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx2") {
+                return Kernel::Avx;
+            }
+            Kernel::Sse
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        Kernel::Scalar
+    }
+
+    /// Every kernel this CPU can run, fastest first.
+    pub fn available() -> Vec<Kernel> {
+        [Kernel::Avx, Kernel::Sse, Kernel::Scalar]
+            .into_iter()
+            .filter(|&k| match k {
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Avx => std::is_x86_feature_detected!("avx2"),
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Sse => true,
+                Kernel::Scalar => true,
+                #[allow(unreachable_patterns)]
+                _ => false,
+            })
+            .collect()
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Kernel::Avx => "8-wide BVH, AVX2",
+            Kernel::Sse => "8-wide BVH, SSE",
+            Kernel::Scalar => "8-wide BVH, scalar",
+        }
+    }
+}
+
 pub struct Accel {
-    bvh: Option<CwBvh>,
-    /// `prims[k]` is the primitive the BVH calls `k`.
+    nodes: Vec<Node>,
+    /// `prims[k]` is the primitive that leaves call `k`.
     prims: Vec<PrimRef>,
-    /// Triangles in BVH leaf order, so that traversal reads vertices without indirection
-    /// through the mesh; analytic shapes and curves take no entry.
+    /// Triangles in leaf order, so that traversal reads vertices without indirection through
+    /// the mesh; analytic shapes and curves take no entry.
     tris: Vec<PackedTri>,
+    /// Stack entries a traversal can need: 7 per level below the root, and one.
+    stack_size: usize,
+    kernel: Kernel,
+}
+
+/// A ray's constants for the box tests.
+#[derive(Clone, Copy)]
+struct BoxRay {
+    o: [f32; 3],
+    inv: [f32; 3],
+    /// The plane (index into [`Node::planes`]) the ray enters through on each axis, and the
+    /// one it leaves through.
+    near: [usize; 3],
+    far: [usize; 3],
+}
+
+impl BoxRay {
+    fn new(ray: &Ray) -> BoxRay {
+        let o = ray.o.to_array();
+        let d = ray.d.to_array();
+        let inv = d.map(|x| 1.0 / x);
+        // The sign bit, so that -0 (1 / -0 = -inf) enters through the upper plane.
+        let near = [0, 1, 2].map(|a| 2 * a + d[a].is_sign_negative() as usize);
+        let far = near.map(|p| p ^ 1);
+        BoxRay { o, inv, near, far }
+    }
+}
+
+/// Scales the far distance of every box test, so that rounding in `(plane - o) * inv` never
+/// culls a box the ray touches (Ize 2013, "Robust BVH ray traversal": 1 + 2 gamma(3)).
+const FAR_SCALE: f32 = 1.0 + 2.0 * crate::math::gamma(3);
+
+/// `a > b ? a : b` and `a < b ? a : b`: what `maxps` and `minps` compute, NaN included (a NaN
+/// in `a` gives `b`). A slab the ray runs inside of, exactly on its plane, gives 0 * inf = NaN,
+/// and is thereby ignored.
+#[inline(always)]
+fn max_ps(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+#[inline(always)]
+fn min_ps(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+/// Which of `node`'s children the ray enters within `[tmin, tmax]` (bit `i` for child `i`),
+/// and the distance at which it enters each.
+#[inline(always)]
+fn test_scalar(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+    let mut tn = [0.0; WIDTH];
+    let mut mask = 0;
+    for i in 0..WIDTH {
+        let mut near = tmin;
+        let mut far = tmax;
+        for a in 0..3 {
+            let plane = |p: usize| node.origin[a] + node.planes[p][i] as f32 * node.scale[a];
+            near = max_ps((plane(r.near[a]) - r.o[a]) * r.inv[a], near);
+            far = min_ps((plane(r.far[a]) - r.o[a]) * r.inv[a], far);
+        }
+        tn[i] = near;
+        mask |= ((near <= far * FAR_SCALE) as u32) << i;
+    }
+    (mask & node.used, tn)
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use std::arch::x86_64::*;
+
+    use super::{BoxRay, Node, FAR_SCALE, WIDTH};
+
+    /// [`super::test_scalar`] on two halves of four lanes.
+    #[inline(always)]
+    pub unsafe fn test_sse(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        let mut tn = [0.0f32; WIDTH];
+        let mut mask = 0;
+        let zero = _mm_setzero_si128();
+        for half in 0..2 {
+            let mut near = _mm_set1_ps(tmin);
+            let mut far = _mm_set1_ps(tmax);
+            for a in 0..3 {
+                let (origin, scale) = (_mm_set1_ps(node.origin[a]), _mm_set1_ps(node.scale[a]));
+                let plane = |p: usize| {
+                    let q = (node.planes[p].as_ptr().add(4 * half) as *const i32).read_unaligned();
+                    let q = _mm_unpacklo_epi16(_mm_unpacklo_epi8(_mm_cvtsi32_si128(q), zero), zero);
+                    _mm_add_ps(origin, _mm_mul_ps(_mm_cvtepi32_ps(q), scale))
+                };
+                let (o, inv) = (_mm_set1_ps(r.o[a]), _mm_set1_ps(r.inv[a]));
+                near = _mm_max_ps(_mm_mul_ps(_mm_sub_ps(plane(r.near[a]), o), inv), near);
+                far = _mm_min_ps(_mm_mul_ps(_mm_sub_ps(plane(r.far[a]), o), inv), far);
+            }
+            _mm_storeu_ps(tn.as_mut_ptr().add(4 * half), near);
+            let hit = _mm_cmple_ps(near, _mm_mul_ps(far, _mm_set1_ps(FAR_SCALE)));
+            mask |= (_mm_movemask_ps(hit) as u32) << (4 * half);
+        }
+        (mask & node.used, tn)
+    }
+
+    /// [`super::test_scalar`] on all eight lanes at once (AVX2 widens the bytes).
+    #[inline(always)]
+    pub unsafe fn test_avx2(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        let mut near = _mm256_set1_ps(tmin);
+        let mut far = _mm256_set1_ps(tmax);
+        for a in 0..3 {
+            let (origin, scale) = (_mm256_set1_ps(node.origin[a]), _mm256_set1_ps(node.scale[a]));
+            let plane = |p: usize| {
+                let q = _mm_loadl_epi64(node.planes[p].as_ptr() as *const __m128i);
+                _mm256_add_ps(origin, _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(q)), scale))
+            };
+            let (o, inv) = (_mm256_set1_ps(r.o[a]), _mm256_set1_ps(r.inv[a]));
+            near = _mm256_max_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.near[a]), o), inv), near);
+            far = _mm256_min_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.far[a]), o), inv), far);
+        }
+        let mut tn = [0.0f32; WIDTH];
+        _mm256_storeu_ps(tn.as_mut_ptr(), near);
+        let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, _mm256_mul_ps(far, _mm256_set1_ps(FAR_SCALE)));
+        (_mm256_movemask_ps(hit) as u32 & node.used, tn)
+    }
+}
+
+/// A box test as a type, so that traversal is compiled once per kernel.
+trait BoxTest {
+    /// # Safety
+    /// The CPU must have the kernel's instructions.
+    unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]);
+}
+struct ScalarTest;
+impl BoxTest for ScalarTest {
+    #[inline(always)]
+    unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        test_scalar(node, r, tmin, tmax)
+    }
+}
+#[cfg(target_arch = "x86_64")]
+struct SseTest;
+#[cfg(target_arch = "x86_64")]
+impl BoxTest for SseTest {
+    #[inline(always)]
+    unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        x86::test_sse(node, r, tmin, tmax)
+    }
+}
+#[cfg(target_arch = "x86_64")]
+struct AvxTest;
+#[cfg(target_arch = "x86_64")]
+impl BoxTest for AvxTest {
+    #[inline(always)]
+    unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        x86::test_avx2(node, r, tmin, tmax)
+    }
+}
+
+/// One closest-hit or any-hit query's state, handed to [`Accel::traverse`]'s leaf callback.
+struct Query<'a> {
+    shapes: &'a [Shape],
+    ray: &'a Ray,
+    pre: RayPre,
+    /// The closest hit so far: leaf-order primitive and its aux values.
+    best: Option<(u32, Vec2)>,
 }
 
 impl Accel {
     pub fn build(shapes: &[Shape]) -> Accel {
         let count: usize = shapes.iter().map(|s| s.prim_count()).sum();
+        assert!(count <= MAX_PRIMS, "{count} primitives: one BVH holds at most {MAX_PRIMS}");
         let mut prims = Vec::with_capacity(count);
         let mut aabbs = Vec::with_capacity(count);
         for (s, shape) in shapes.iter().enumerate() {
@@ -52,23 +348,65 @@ impl Accel {
                 aabbs.push(Aabb::new(Vec3A::from(lo), Vec3A::from(hi)));
             }
         }
+        let kernel = Kernel::detect();
         if prims.is_empty() {
-            return Accel { bvh: None, prims, tris: Vec::new() };
+            return Accel { nodes: Vec::new(), prims, tris: Vec::new(), stack_size: 0, kernel };
         }
         // Past two million primitives (a quarter of a million fibres), obvhs' better builds
-        // cost more time than they save: a million fibres (8M segments) load in 7.1 s on 2
-        // cores with the very fast build against 8.3 to 9.9 s with the fast one (medium: more),
-        // and that fur even renders faster with it (0.063 to 0.081 against 0.047 to 0.054
-        // Msamples/s at 8 spp; docs/BENCHMARKS.md).
-        let params = if count > FAST_BUILD_ABOVE {
+        // cost more time than they save (docs/BENCHMARKS.md, "Fur at scale").
+        let mut params = if count > FAST_BUILD_ABOVE {
             BvhBuildParams::very_fast_build()
         } else {
             BvhBuildParams::medium_build()
         };
-        let mut bvh = build_cwbvh(&aabbs, params, &mut Default::default());
+        // Leaves of up to four primitives, collapsed where the SAH says a leaf is cheaper, with
+        // a box test costing twice a primitive's: on hair.xml, 1 renders 5% faster but holds
+        // twice the nodes (29 bytes a fibre segment against 16); 3 is 15% slower on cbox.
+        params.max_prims_per_leaf = LEAF_MAX;
+        params.collapse_traversal_cost = 2.0;
+        let bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
         drop(aabbs);
+
+        // Collapse: a node takes its binary node's two children, then opens the largest inner
+        // child (by surface area) until it has eight or only leaves.
+        let b2 = &bvh2.nodes;
+        let mut nodes = vec![EMPTY_NODE];
+        let mut todo = vec![(0usize, 0usize, 1usize)]; // (wide node, binary node, depth)
+        let mut depth = 1;
+        while let Some((w, n, level)) = todo.pop() {
+            depth = depth.max(level);
+            let mut kids = Vec::with_capacity(WIDTH);
+            if b2[n].is_leaf() {
+                kids.push(n);
+            } else {
+                kids.extend([b2[n].first_index as usize, b2[n].first_index as usize + 1]);
+                while kids.len() < WIDTH {
+                    let open = (0..kids.len())
+                        .filter(|&k| !b2[kids[k]].is_leaf())
+                        .max_by(|&a, &b| b2[kids[a]].aabb().half_area().total_cmp(&b2[kids[b]].aabb().half_area()));
+                    let Some(k) = open else { break };
+                    let first = b2[kids[k]].first_index as usize;
+                    kids[k] = first;
+                    kids.push(first + 1);
+                }
+            }
+            let boxes: Vec<(Vec3A, Vec3A)> = kids.iter().map(|&k| (b2[k].aabb().min, b2[k].aabb().max)).collect();
+            nodes[w] = Node::quantise(&boxes);
+            for (lane, &k) in kids.iter().enumerate() {
+                let node = &b2[k];
+                nodes[w].child[lane] = if node.is_leaf() {
+                    debug_assert!((1..=LEAF_MAX).contains(&node.prim_count));
+                    LEAF | (node.prim_count - 1) << FIRST_BITS | node.first_index
+                } else {
+                    nodes.push(EMPTY_NODE);
+                    todo.push((nodes.len() - 1, k, level + 1));
+                    nodes.len() as u32 - 1
+                };
+            }
+        }
+
         let mut tris = Vec::new();
-        let prims: Vec<PrimRef> = bvh
+        let prims: Vec<PrimRef> = bvh2
             .primitive_indices
             .iter()
             .map(|&k| {
@@ -82,32 +420,40 @@ impl Accel {
                 p
             })
             .collect();
+        drop(bvh2);
         tris.shrink_to_fit();
-        // Traversal names primitives by leaf order, which `prims` follows: the BVH's own map
-        // back to input order is not needed, and the builder leaves its node array at the
-        // capacity of one node per primitive (80 bytes each, ten times what is used).
-        bvh.primitive_indices = Vec::new();
-        bvh.nodes.shrink_to_fit();
+        nodes.shrink_to_fit();
         tracing::debug!(
             primitives = prims.len(),
-            nodes = bvh.nodes.len(),
-            bytes = std::mem::size_of_val(bvh.nodes.as_slice())
+            nodes = nodes.len(),
+            depth,
+            bytes = std::mem::size_of_val(nodes.as_slice())
                 + std::mem::size_of_val(prims.as_slice())
                 + std::mem::size_of_val(tris.as_slice()),
             "BVH built"
         );
-        Accel { bvh: Some(bvh), prims, tris }
+        Accel { nodes, prims, tris, stack_size: (WIDTH - 1) * depth + 1, kernel }
     }
 
     pub fn prim_count(&self) -> usize {
         self.prims.len()
     }
 
-    fn obvhs_ray(ray: &Ray) -> obvhs::ray::Ray {
-        obvhs::ray::Ray::new(Vec3A::from(ray.o), Vec3A::from(ray.d), ray.tmin, ray.tmax)
+    /// The kernel that tests boxes.
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
     }
 
-    /// Intersects the primitive the BVH calls `k`.
+    /// Uses `kernel` from now on (tests compare kernels; benchmarks time them).
+    ///
+    /// # Panics
+    /// If this CPU cannot run it.
+    pub fn set_kernel(&mut self, kernel: Kernel) {
+        assert!(Kernel::available().contains(&kernel), "{kernel:?} is not available on this CPU");
+        self.kernel = kernel;
+    }
+
+    /// Intersects the primitive leaves call `k`.
     #[inline(always)]
     fn hit(&self, shapes: &[Shape], k: usize, ray: &Ray, pre: &RayPre, tmax: f32) -> Option<(f32, Vec2)> {
         let prim = self.prims[k];
@@ -121,37 +467,275 @@ impl Accel {
 
     /// The closest hit along `ray`, if any.
     pub fn intersect(&self, shapes: &[Shape], ray: &Ray) -> Option<Interaction> {
-        let bvh = self.bvh.as_ref()?;
-        let pre = RayPre::new(ray.d);
-        let mut best: Option<(usize, Vec2)> = None;
-        let mut hit = obvhs::ray::RayHit::none();
-        bvh.ray_traverse(Self::obvhs_ray(ray), &mut hit, |r, k| {
-            match self.hit(shapes, k, ray, &pre, r.tmax) {
-                Some((t, aux)) => {
-                    if t < r.tmax {
-                        best = Some((k, aux));
-                    }
-                    t
-                }
-                None => f32::INFINITY,
+        if self.nodes.is_empty() {
+            return None;
+        }
+        let mut q = Query { shapes, ray, pre: RayPre::new(ray.d), best: None };
+        // SAFETY: `self.kernel` is one that this CPU runs (`detect`, `set_kernel`).
+        let t = unsafe {
+            match self.kernel {
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Avx => self.closest_avx(&mut q),
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Sse => self.traverse::<SseTest, false>(&mut q),
+                _ => self.traverse::<ScalarTest, false>(&mut q),
             }
-        });
-        let (k, aux) = best?;
-        let prim = self.prims[k];
+        };
+        let (k, aux) = q.best?;
+        let prim = self.prims[k as usize];
         let shape = prim.shape & !TRIANGLE;
         let index =
             if prim.shape & TRIANGLE != 0 { self.tris[prim.index as usize].index } else { prim.index };
-        Some(shapes[shape as usize].interaction(shape, index as usize, ray, hit.t, aux))
+        Some(shapes[shape as usize].interaction(shape, index as usize, ray, t, aux))
     }
 
     /// Whether anything blocks `ray` within `[tmin, tmax)`.
     pub fn occluded(&self, shapes: &[Shape], ray: &Ray) -> bool {
-        let Some(bvh) = self.bvh.as_ref() else {
+        if self.nodes.is_empty() {
             return false;
+        }
+        let mut q = Query { shapes, ray, pre: RayPre::new(ray.d), best: None };
+        // SAFETY: as in `intersect`.
+        unsafe {
+            match self.kernel {
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Avx => self.any_avx(&mut q),
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Sse => self.traverse::<SseTest, true>(&mut q),
+                _ => self.traverse::<ScalarTest, true>(&mut q),
+            };
+        }
+        q.best.is_some()
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn closest_avx(&self, q: &mut Query) -> f32 {
+        self.traverse::<AvxTest, false>(q)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn any_avx(&self, q: &mut Query) -> f32 {
+        self.traverse::<AvxTest, true>(q)
+    }
+
+    /// Walks the tree for `q`: the closest hit (`ANY` false) or any hit (`ANY` true) goes to
+    /// `q.best`; returns its distance.
+    ///
+    /// # Safety
+    /// The CPU must run `T`'s instructions.
+    #[inline(always)]
+    unsafe fn traverse<T: BoxTest, const ANY: bool>(&self, q: &mut Query) -> f32 {
+        let r = BoxRay::new(q.ray);
+        let tmin = q.ray.tmin;
+        let mut tmax = q.ray.tmax;
+        let mut inline = [MaybeUninit::<(u32, f32)>::uninit(); INLINE_STACK];
+        let mut heap = Vec::new();
+        let stack: &mut [MaybeUninit<(u32, f32)>] = if self.stack_size <= INLINE_STACK {
+            &mut inline
+        } else {
+            heap.resize(self.stack_size, MaybeUninit::uninit());
+            &mut heap
         };
-        let pre = RayPre::new(ray.d);
-        !bvh.ray_traverse_miss(Self::obvhs_ray(ray), |r, k| {
-            self.hit(shapes, k, ray, &pre, r.tmax).map_or(f32::INFINITY, |(t, _)| t)
-        })
+        let mut sp = 0;
+        let mut cur = 0u32; // the root
+        loop {
+            if cur & LEAF != 0 {
+                let first = cur & ((1 << FIRST_BITS) - 1);
+                let count = ((cur & !LEAF) >> FIRST_BITS) + 1;
+                for k in first..first + count {
+                    if let Some((t, aux)) = self.hit(q.shapes, k as usize, q.ray, &q.pre, tmax) {
+                        if t < tmax {
+                            tmax = t;
+                            q.best = Some((k, aux));
+                            if ANY {
+                                return t;
+                            }
+                        }
+                    }
+                }
+            } else {
+                let node = self.nodes.get_unchecked(cur as usize);
+                let (mut mask, tn) = T::test(node, &r, tmin, tmax);
+                if mask != 0 {
+                    let lane = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
+                    if mask == 0 {
+                        cur = node.child[lane];
+                        continue;
+                    }
+                    // Two or more children: push all but the nearest, farthest deepest.
+                    let base = sp;
+                    let mut nearest = (node.child[lane], tn[lane]);
+                    while mask != 0 {
+                        let lane = mask.trailing_zeros() as usize;
+                        mask &= mask - 1;
+                        let mut e = (node.child[lane], tn[lane]);
+                        if !ANY && e.1 < nearest.1 {
+                            std::mem::swap(&mut e, &mut nearest);
+                        }
+                        // Insertion into the pushed run, kept in decreasing distance.
+                        let mut i = sp;
+                        if !ANY {
+                            while i > base && stack[i - 1].assume_init().1 < e.1 {
+                                stack[i] = stack[i - 1];
+                                i -= 1;
+                            }
+                        }
+                        stack[i] = MaybeUninit::new(e);
+                        sp += 1;
+                    }
+                    cur = nearest.0;
+                    continue;
+                }
+            }
+            // Pop the nearest pending child that may still hold a closer hit.
+            loop {
+                if sp == 0 {
+                    return tmax;
+                }
+                sp -= 1;
+                let (c, t) = stack[sp].assume_init();
+                if t <= tmax {
+                    cur = c;
+                    break;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Mesh;
+
+    fn xorshift(s: &mut u64) -> f32 {
+        *s ^= *s << 13;
+        *s ^= *s >> 7;
+        *s ^= *s << 17;
+        (*s >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// A soup of random triangles of mixed sizes, a fifth of them perpendicular to an axis.
+    fn soup(n: usize, seed: u64) -> Vec<Shape> {
+        let mut s = seed;
+        let mut m = Mesh::default();
+        for i in 0..n {
+            let c = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 10.0;
+            let size = if i % 7 == 0 { 3.0 } else { 0.3 };
+            for _ in 0..3 {
+                let mut p = c + (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5) * size;
+                if i % 5 == 1 {
+                    p[i % 3] = c[i % 3]; // flat along one axis, like a box's wall: a flat box
+                }
+                m.positions.push(p);
+            }
+            let b = 3 * i as u32;
+            m.tris.push([b, b + 1, b + 2]);
+        }
+        vec![Shape { geometry: Geometry::Mesh(m), bsdf: 0, light: None, flip_normals: false, name: "soup".into() }]
+    }
+
+    /// Every kernel finds exactly what testing every primitive finds: the same closest hit
+    /// (distance and triangle) and the same occlusion answer, for rays from inside and outside
+    /// the soup, axis-aligned ones included.
+    #[test]
+    fn traversal_matches_brute_force_for_every_kernel() {
+        for (n, seed) in [(1, 1), (5, 2), (2000, 3)] {
+            let shapes = soup(n, seed);
+            let mut accel = Accel::build(&shapes);
+            let Geometry::Mesh(mesh) = &shapes[0].geometry else { unreachable!() };
+            let mut s = seed * 77 + 1;
+            for ray_index in 0..3000 {
+                let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 14.0 - 2.0;
+                let mut d = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5;
+                if ray_index % 5 == 0 {
+                    d = [Vec3::X, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_X][ray_index / 5 % 4];
+                }
+                let mut ray = Ray::new(o, d.normalize());
+                if ray_index % 3 == 0 {
+                    ray.tmax = 4.0;
+                }
+                let pre = RayPre::new(ray.d);
+                let mut brute: Option<(f32, usize)> = None;
+                for i in 0..mesh.tris.len() {
+                    let [a, b, c] = mesh.tri(i);
+                    if let Some((t, ..)) = intersect_triangle(&ray, &pre, ray.tmax, a, b, c) {
+                        if t < ray.tmax && brute.is_none_or(|(bt, _)| t < bt) {
+                            brute = Some((t, i));
+                        }
+                    }
+                }
+                for kernel in Kernel::available() {
+                    accel.set_kernel(kernel);
+                    let hit = accel.intersect(&shapes, &ray).map(|it| (it.t, it.prim as usize));
+                    assert_eq!(hit.map(|h| h.0), brute.map(|b| b.0), "{kernel:?}, n {n}, ray {ray_index}");
+                    assert_eq!(accel.occluded(&shapes, &ray), brute.is_some(), "{kernel:?}, ray {ray_index}");
+                }
+            }
+        }
+    }
+
+    /// Quantised planes enclose their child's box, for boxes far from the origin, tiny, flat
+    /// and huge alike.
+    #[test]
+    fn quantised_boxes_enclose_their_children() {
+        let mut s = 9;
+        for round in 0..2000 {
+            let centre = (Vec3A::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5)
+                * [1.0, 1e3, 1e6, 1e-3][round % 4];
+            let n = 1 + round % WIDTH;
+            let boxes: Vec<(Vec3A, Vec3A)> = (0..n)
+                .map(|k| {
+                    let size = [1e-6, 0.0, 1.0, 1e4][(round + k) % 4];
+                    let lo = centre + Vec3A::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * size;
+                    let hi = lo + Vec3A::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * size;
+                    (lo, hi)
+                })
+                .collect();
+            let node = Node::quantise(&boxes);
+            assert_eq!(node.used, (1 << n) - 1);
+            for (i, (lo, hi)) in boxes.iter().enumerate() {
+                for a in 0..3 {
+                    let plane = |p: usize| node.origin[a] + node.planes[p][i] as f32 * node.scale[a];
+                    assert!(plane(2 * a) <= lo[a] && plane(2 * a + 1) >= hi[a], "round {round}, box {i}, axis {a}");
+                }
+            }
+        }
+    }
+
+    /// Only the used lanes are entered, whatever the direction's signs (zeros of either sign
+    /// included); a ray running inside a box's slab exactly on its plane (0 * inf) still
+    /// enters it.
+    #[test]
+    fn unused_lanes_are_never_entered_and_planes_are_inclusive() {
+        let boxes = [(Vec3A::ZERO, Vec3A::ONE), (Vec3A::splat(5.0), Vec3A::splat(6.0))];
+        let node = Node::quantise(&boxes);
+        for (o, d) in [
+            (Vec3::new(0.0, 0.5, -3.0), Vec3::new(0.0, 0.0, 1.0)),
+            (Vec3::new(1.0, 0.5, 4.0), Vec3::new(-0.0, 0.0, -1.0)),
+            (Vec3::new(-3.0, 0.0, 0.5), Vec3::new(1.0, -0.0, 0.0)),
+            (Vec3::new(3.0, -2.5, -2.5), Vec3::new(-1.0, 1.0, 1.0).normalize()),
+        ] {
+            let r = BoxRay::new(&Ray::new(o, d));
+            let mut answers = vec![test_scalar(&node, &r, 0.0, f32::INFINITY).0];
+            #[cfg(target_arch = "x86_64")]
+            for kernel in Kernel::available() {
+                // SAFETY: the kernel is available.
+                let m = unsafe {
+                    match kernel {
+                        Kernel::Avx => AvxTest::test(&node, &r, 0.0, f32::INFINITY).0,
+                        Kernel::Sse => SseTest::test(&node, &r, 0.0, f32::INFINITY).0,
+                        Kernel::Scalar => ScalarTest::test(&node, &r, 0.0, f32::INFINITY).0,
+                    }
+                };
+                answers.push(m);
+            }
+            for m in answers {
+                assert_eq!(m, 1, "ray {o} + t {d}");
+            }
+        }
     }
 }
