@@ -35,6 +35,38 @@ pub struct Hair {
     /// sin and cos of 2^k alpha, k = 0, 1, 2 (cuticle tilt).
     sin2k: [f32; 3],
     cos2k: [f32; 3],
+    /// Per lobe, what Mp's normalisation needs of v alone (see [`MpNorm`]).
+    mp_norm: [MpNorm; P_MAX + 1],
+    /// The trimmed logistic's constants for `s` (see [`Trim`]).
+    trim: Trim,
+}
+
+/// The parts of Mp that depend on v alone, computed once: 1 / v and ln v for the log form
+/// (v <= 0.1), 2 v sinh(1 / v) otherwise.
+#[derive(Clone, Copy, Debug)]
+struct MpNorm {
+    inv_v: f32,
+    ln_v: f32,
+    denom: f32,
+}
+
+impl MpNorm {
+    fn new(v: f32) -> MpNorm {
+        MpNorm { inv_v: 1.0 / v, ln_v: v.ln(), denom: 2.0 * v * (1.0 / v).sinh() }
+    }
+}
+
+/// The logistic's CDF at -pi, and its mass on [-pi, pi], for one scale.
+#[derive(Clone, Copy, Debug)]
+struct Trim {
+    cdf_neg_pi: f32,
+    mass: f32,
+}
+
+impl Trim {
+    fn new(s: f32) -> Trim {
+        Trim { cdf_neg_pi: logistic_cdf(-PI, s), mass: logistic_cdf(PI, s) - logistic_cdf(-PI, s) }
+    }
 }
 
 impl Hair {
@@ -53,7 +85,7 @@ impl Hair {
             sin2k[i] = 2.0 * cos2k[i - 1] * sin2k[i - 1];
             cos2k[i] = cos2k[i - 1] * cos2k[i - 1] - sin2k[i - 1] * sin2k[i - 1];
         }
-        Hair { sigma_a, eta, v, s, sin2k, cos2k }
+        Hair { sigma_a, eta, v, s, sin2k, cos2k, mp_norm: v.map(MpNorm::new), trim: Trim::new(s) }
     }
 
     /// Absorption from pigment concentrations (RGB fits of eumelanin and pheomelanin).
@@ -131,30 +163,26 @@ impl Hair {
         (sin, safe_sqrt(1.0 - sin * sin), w.z.atan2(w.y))
     }
 
-    /// f |cos| summed over lobes (`weights` = A_p) or the pdf (`weights` = lobe probabilities),
-    /// `weights` mapping the attenuations to one weight per lobe, once per call.
-    fn lobes<T: Copy + std::ops::Mul<f32, Output = T> + std::ops::Add<Output = T>>(
-        &self,
-        wo: Vec3,
-        wi: Vec3,
-        h: f32,
-        zero: T,
-        weights: impl FnOnce(&[Rgb; P_MAX + 1]) -> [T; P_MAX + 1],
-    ) -> T {
-        let (sin_o, cos_o, phi_o) = Self::angles(wo);
+    /// f |cos| summed over lobes and the pdf of `wi`, for `wo` given by its angles and
+    /// attenuation: each lobe's Mp and Np are computed once for both.
+    fn lobes(&self, o: (f32, f32, f32), att: &([Rgb; P_MAX + 1], f32, f32), wi: Vec3) -> (Rgb, f32) {
+        let (sin_o, cos_o, phi_o) = o;
         let (sin_i, cos_i, phi_i) = Self::angles(wi);
-        let (a, gamma_o, gamma_t) = self.attenuation(sin_o, cos_o, h);
-        let w = weights(&a);
+        let (a, gamma_o, gamma_t) = att;
+        let w = Self::lobe_pdf(a);
         let phi = phi_i - phi_o;
-        let mut sum = zero;
-        for (p, &wp) in w.iter().enumerate().take(P_MAX) {
+        let (mut f, mut pdf) = (Rgb::ZERO, 0.0f32);
+        for p in 0..P_MAX {
             let (so, co) = self.tilt(p, sin_o, cos_o);
-            let m = mp(cos_i, co, sin_i, so, self.v[p]);
-            let n = np(phi, p, self.s, gamma_o, gamma_t);
-            sum = sum + wp * (m * n);
+            let m = mp(cos_i, co, sin_i, so, self.v[p], &self.mp_norm[p]);
+            let n = np(phi, p, self.s, *gamma_o, *gamma_t, &self.trim);
+            f = f + a[p] * (m * n);
+            pdf += w[p] * (m * n);
         }
-        let m = mp(cos_i, cos_o, sin_i, sin_o, self.v[P_MAX]);
-        sum + w[P_MAX] * (m / (2.0 * PI))
+        let m = mp(cos_i, cos_o, sin_i, sin_o, self.v[P_MAX], &self.mp_norm[P_MAX]);
+        let f = f + a[P_MAX] * (m / (2.0 * PI));
+        let pdf = pdf + w[P_MAX] * (m / (2.0 * PI));
+        (if f.is_finite() { f.max(Rgb::ZERO) } else { Rgb::ZERO }, if pdf.is_finite() { pdf.max(0.0) } else { 0.0 })
     }
 
     /// The offset across the fibre implied by `wo` and the normal: for a round fibre the
@@ -168,28 +196,26 @@ impl Hair {
         }
     }
 
+    /// f |cos| and the pdf of `wi`, computed together (they share every costly term).
+    pub fn eval_pdf(&self, wo: Vec3, wi: Vec3, h: f32) -> (Rgb, f32) {
+        let o = Self::angles(wo);
+        self.lobes(o, &self.attenuation(o.0, o.1, h), wi)
+    }
+
     pub fn eval(&self, wo: Vec3, wi: Vec3, h: f32) -> Rgb {
-        let r = self.lobes(wo, wi, h, Rgb::ZERO, |a| *a);
-        if r.is_finite() {
-            r.max(Rgb::ZERO)
-        } else {
-            Rgb::ZERO
-        }
+        self.eval_pdf(wo, wi, h).0
     }
 
     pub fn pdf(&self, wo: Vec3, wi: Vec3, h: f32) -> f32 {
-        let r = self.lobes(wo, wi, h, 0.0f32, Self::lobe_pdf);
-        if r.is_finite() {
-            r.max(0.0)
-        } else {
-            0.0
-        }
+        self.eval_pdf(wo, wi, h).1
     }
 
     /// Picks a lobe with `u1` (its remainder then samples the azimuth) and samples Mp with `u2`.
     pub fn sample(&self, wo: Vec3, h: f32, u1: f32, u2: Vec2) -> Option<BsdfSample> {
-        let (sin_o, cos_o, phi_o) = Self::angles(wo);
-        let (a, gamma_o, gamma_t) = self.attenuation(sin_o, cos_o, h);
+        let o = Self::angles(wo);
+        let (sin_o, cos_o, phi_o) = o;
+        let att = self.attenuation(sin_o, cos_o, h);
+        let (a, gamma_o, gamma_t) = att;
         let lp = Self::lobe_pdf(&a);
         let mut p = P_MAX;
         let mut u = u1;
@@ -215,17 +241,20 @@ impl Hair {
         let sin_i = (-cos_t * so + sin_t * cos_phi * co).clamp(-1.0, 1.0);
         let cos_i = safe_sqrt(1.0 - sin_i * sin_i);
         let dphi = if p < P_MAX {
-            phi_fn(p, gamma_o, gamma_t) + sample_trimmed_logistic(u_phi, self.s)
+            phi_fn(p, gamma_o, gamma_t) + sample_trimmed_logistic(u_phi, self.s, &self.trim)
         } else {
             2.0 * PI * u_phi
         };
         let phi_i = phi_o + dphi;
         let wi = Vec3::new(sin_i, cos_i * phi_i.cos(), cos_i * phi_i.sin());
-        let pdf = self.pdf(wo, wi, h);
-        if !(pdf > 0.0) || !wi.is_finite() {
+        if !wi.is_finite() {
             return None;
         }
-        let weight = self.eval(wo, wi, h) / pdf;
+        let (f, pdf) = self.lobes(o, &att, wi);
+        if !(pdf > 0.0) {
+            return None;
+        }
+        let weight = f / pdf;
         weight.is_finite().then_some(BsdfSample { wi, weight, pdf, delta: false, eta: 1.0 })
     }
 }
@@ -255,13 +284,13 @@ fn i0(x: f32) -> f32 {
 
 /// d'Eon et al. 2011: Mp = exp(-sin_i sin_o / v) I0(cos_i cos_o / v) / (2 v sinh(1 / v)),
 /// in log form for v <= 0.1.
-fn mp(cos_i: f32, cos_o: f32, sin_i: f32, sin_o: f32, v: f32) -> f32 {
+fn mp(cos_i: f32, cos_o: f32, sin_i: f32, sin_o: f32, v: f32, norm: &MpNorm) -> f32 {
     let a = cos_i * cos_o / v;
     let b = sin_i * sin_o / v;
     if v <= 0.1 {
-        (log_i0(a) - b - 1.0 / v - v.ln()).exp()
+        (log_i0(a) - b - norm.inv_v - norm.ln_v).exp()
     } else {
-        (-b).exp() * i0(a) / (2.0 * v * (1.0 / v).sinh())
+        (-b).exp() * i0(a) / norm.denom
     }
 }
 
@@ -280,20 +309,19 @@ fn logistic_cdf(x: f32, s: f32) -> f32 {
     1.0 / (1.0 + (-x / s).exp())
 }
 
-fn trimmed_logistic(x: f32, s: f32) -> f32 {
-    logistic(x, s) / (logistic_cdf(PI, s) - logistic_cdf(-PI, s))
+fn trimmed_logistic(x: f32, s: f32, trim: &Trim) -> f32 {
+    logistic(x, s) / trim.mass
 }
 
-fn sample_trimmed_logistic(u: f32, s: f32) -> f32 {
-    let k = logistic_cdf(PI, s) - logistic_cdf(-PI, s);
-    let x = -s * (1.0 / (u * k + logistic_cdf(-PI, s)) - 1.0).ln();
+fn sample_trimmed_logistic(u: f32, s: f32, trim: &Trim) -> f32 {
+    let x = -s * (1.0 / (u * trim.mass + trim.cdf_neg_pi) - 1.0).ln();
     x.clamp(-PI, PI)
 }
 
-fn np(phi: f32, p: usize, s: f32, gamma_o: f32, gamma_t: f32) -> f32 {
+fn np(phi: f32, p: usize, s: f32, gamma_o: f32, gamma_t: f32, trim: &Trim) -> f32 {
     let mut d = phi - phi_fn(p, gamma_o, gamma_t);
     d = (d + PI).rem_euclid(2.0 * PI) - PI;
-    trimmed_logistic(d, s)
+    trimmed_logistic(d, s, trim)
 }
 
 #[cfg(test)]
@@ -452,7 +480,7 @@ mod tests {
                 let mut s = 0.0f64;
                 for k in 0..n {
                     let t = -PI / 2.0 + PI * (k as f32 + 0.5) / n as f32;
-                    s += (mp(t.cos(), cos_o, t.sin(), sin_o, v) * t.cos()) as f64;
+                    s += (mp(t.cos(), cos_o, t.sin(), sin_o, v, &MpNorm::new(v)) * t.cos()) as f64;
                 }
                 let integral = s * std::f64::consts::PI / n as f64;
                 assert!((integral - 1.0).abs() < 0.01, "v {v} sin_o {sin_o}: {integral}");

@@ -153,6 +153,20 @@ impl Bsdf {
         }
     }
 
+    /// `eval`, and `pdf` too where computing it with the value costs little more than the
+    /// value alone (hair, whose terms are shared); otherwise `None`, and `pdf` is called only
+    /// if it is needed.
+    #[inline]
+    pub fn eval_and_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, Option<f32>) {
+        match self {
+            Bsdf::Hair(h) => {
+                let (f, pdf) = h.eval_pdf(wo, wi, hair::Hair::h_from(wo));
+                (f, Some(pdf))
+            }
+            _ => (self.eval(uv, wo, wi), None),
+        }
+    }
+
     /// Samples `wi` given `wo`; `u1` picks a lobe, `u2` the direction within it.
     #[inline]
     pub fn sample(&self, uv: TexCoord, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {

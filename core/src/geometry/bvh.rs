@@ -14,6 +14,7 @@ use obvhs::aabb::Aabb;
 use obvhs::bvh2::builder::build_bvh2;
 use obvhs::BvhBuildParams;
 
+use super::curves::{missed_by4, Segment, Segments4};
 use super::{intersect_triangle, Geometry, Interaction, Ray, RayPre, Shape};
 
 /// A primitive in BVH leaf order, 8 bytes: for triangles, `index` is the slot in
@@ -465,6 +466,29 @@ impl Accel {
         }
     }
 
+    /// Which of a leaf's primitives are fibre segments that the ray certainly misses (bit `j`
+    /// for the leaf's `j`-th), tested together when the leaf holds two or more.
+    #[inline(always)]
+    fn curve_misses(&self, q: &Query, first: u32, count: u32) -> u32 {
+        const _: () = assert!(LEAF_MAX <= 4, "missed_by4 tests four segments");
+        let mut segs: [Option<&Segment>; 4] = [None; 4];
+        let mut curves = 0u32;
+        for j in 0..count as usize {
+            let prim = self.prims[first as usize + j];
+            if prim.shape & TRIANGLE == 0 {
+                if let Geometry::Curves(c) = &q.shapes[prim.shape as usize].geometry {
+                    segs[j] = Some(&c.segments[prim.index as usize]);
+                    curves |= 1 << j;
+                }
+            }
+        }
+        if curves & (curves - 1) == 0 {
+            return 0; // one segment or none: `Curves::intersect` tests it alone
+        }
+        let any = segs[curves.trailing_zeros() as usize].unwrap_or_else(|| unreachable!());
+        missed_by4(q.ray.o, q.ray.d, &Segments4::gather(segs.map(|s| s.unwrap_or(any)))) & curves
+    }
+
     /// The closest hit along `ray`, if any.
     pub fn intersect(&self, shapes: &[Shape], ray: &Ray) -> Option<Interaction> {
         if self.nodes.is_empty() {
@@ -544,7 +568,11 @@ impl Accel {
             if cur & LEAF != 0 {
                 let first = cur & ((1 << FIRST_BITS) - 1);
                 let count = ((cur & !LEAF) >> FIRST_BITS) + 1;
-                for k in first..first + count {
+                let skip = if count > 1 { self.curve_misses(q, first, count) } else { 0 };
+                for (j, k) in (first..first + count).enumerate() {
+                    if skip >> j & 1 != 0 {
+                        continue;
+                    }
                     if let Some((t, aux)) = self.hit(q.shapes, k as usize, q.ray, &q.pre, tmax) {
                         if t < tmax {
                             tmax = t;

@@ -10,7 +10,7 @@
 //! So, as in Mitsuba, a ray leaving a fibre, even through its body, never hits the fibre it
 //! starts in.
 
-use glam::{DVec3, Vec2, Vec3};
+use glam::{DVec3, Vec2, Vec3, Vec4};
 
 /// One segment of a fibre: from `p0` (radius `r0`) to `p1` (radius `r1`).
 #[derive(Clone, Copy, Debug)]
@@ -420,26 +420,10 @@ impl Curves {
 
 impl Segment {
     /// Whether the line `o + t d` (any t) certainly passes farther from the segment's axis
-    /// than its larger radius: then neither its frustum nor its joint sphere can be hit. A
-    /// cheap f32 test that spares the exact f64 one most of the segments a ray's traversal
-    /// reaches (their boxes are loose around thin diagonal fibres). The tolerance is far above
-    /// the f32 rounding of the coordinates involved, so it never rejects a hit.
+    /// than its larger radius ([`missed_by4`] for this segment alone).
     #[inline]
     pub fn missed_by(&self, o: Vec3, d: Vec3) -> bool {
-        let w = o - self.p0;
-        let v = self.p1 - self.p0;
-        let (a, b, c) = (d.dot(d), d.dot(v), v.dot(v));
-        let (dw, vw) = (d.dot(w), v.dot(w));
-        // The segment's parameter of the closest approach, clamped to the segment; then the
-        // ray's parameter closest to that point.
-        let denom = a * c - b * b;
-        let s = if denom > 1e-6 * a * c { ((a * vw - b * dw) / denom).clamp(0.0, 1.0) } else { 0.0 };
-        let t = (b * s - dw) / a;
-        let dist2 = (w + d * t - v * s).length_squared();
-        let scale = o.abs().max_element() + self.p0.abs().max_element() + 2.0 * (v.abs().max_element() + (d * t).abs().max_element());
-        let reach = self.r0.max(self.r1) * 1.001 + 1e-5 * scale;
-        // Written so that a NaN anywhere keeps the exact test.
-        !(dist2 <= reach * reach)
+        missed_by4(o, d, &Segments4::gather([self; 4])) & 1 != 0
     }
 
     /// Point on the surface for a hit, its error bound, and uv (u along the curve).
@@ -452,6 +436,56 @@ impl Segment {
     pub fn tangent(&self) -> Vec3 {
         (self.p1 - self.p0).normalize_or_zero()
     }
+}
+
+/// Four segments' axes and larger radii, one segment a lane, for [`missed_by4`].
+pub struct Segments4 {
+    p0: [Vec4; 3],
+    p1: [Vec4; 3],
+    r: Vec4,
+}
+
+impl Segments4 {
+    #[inline(always)]
+    pub fn gather(segs: [&Segment; 4]) -> Segments4 {
+        let lanes = |f: &dyn Fn(&Segment) -> f32| Vec4::new(f(segs[0]), f(segs[1]), f(segs[2]), f(segs[3]));
+        Segments4 {
+            p0: [lanes(&|s| s.p0.x), lanes(&|s| s.p0.y), lanes(&|s| s.p0.z)],
+            p1: [lanes(&|s| s.p1.x), lanes(&|s| s.p1.y), lanes(&|s| s.p1.z)],
+            r: lanes(&|s| s.r0.max(s.r1)),
+        }
+    }
+}
+
+/// Which of four segments the line `o + t d` (any t) certainly passes farther from than the
+/// segment's larger radius (bit `i` for lane `i`): then neither its frustum nor its joint
+/// sphere can be hit. A cheap f32 test, four segments at once, that spares the exact f64 one
+/// most of the segments a ray's traversal reaches (dense fur puts many in its way). The
+/// tolerance is far above the f32 rounding of the coordinates involved, so it never rejects a
+/// hit; a NaN anywhere keeps the exact test.
+#[inline(always)]
+pub fn missed_by4(o: Vec3, d: Vec3, s: &Segments4) -> u32 {
+    let dot = |a: &[Vec4; 3], b: &[Vec4; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let ds = [Vec4::splat(d.x), Vec4::splat(d.y), Vec4::splat(d.z)];
+    let w = [Vec4::splat(o.x) - s.p0[0], Vec4::splat(o.y) - s.p0[1], Vec4::splat(o.z) - s.p0[2]];
+    let v = [s.p1[0] - s.p0[0], s.p1[1] - s.p0[1], s.p1[2] - s.p0[2]];
+    let a = Vec4::splat(d.dot(d));
+    let (b, c, dw, vw) = (dot(&ds, &v), dot(&v, &v), dot(&ds, &w), dot(&v, &w));
+    // The segment's parameter of the closest approach, clamped to the segment (a NaN stays
+    // NaN); then the ray's parameter closest to that point.
+    let denom = a * c - b * b;
+    let free = (a * vw - b * dw) / denom;
+    let clamped = Vec4::select(free.is_nan_mask(), free, free.max(Vec4::ZERO).min(Vec4::ONE));
+    let sp = Vec4::select(denom.cmpgt(Vec4::splat(1e-6) * a * c), clamped, Vec4::ZERO);
+    let t = (b * sp - dw) / a;
+    let e = [w[0] + ds[0] * t - v[0] * sp, w[1] + ds[1] * t - v[1] * sp, w[2] + ds[2] * t - v[2] * sp];
+    let dist2 = dot(&e, &e);
+    let max_abs = |x: &[Vec4; 3]| x[0].abs().max(x[1].abs()).max(x[2].abs());
+    let scale = Vec4::splat(o.abs().max_element())
+        + max_abs(&s.p0)
+        + 2.0 * (max_abs(&v) + t.abs() * d.abs().max_element());
+    let reach = s.r * 1.001 + scale * 1e-5;
+    !dist2.cmple(reach * reach).bitmask() & 0xf
 }
 
 /// Real roots of a t^2 + b t + c, ascending (numerically stable form), without allocating:
@@ -513,6 +547,11 @@ mod tests {
             let d = (target - o).normalize_or(Vec3::Z);
             let hit = c.intersect_exact(0, o, d, 0.0, f32::INFINITY);
             let quick = c.segments[0].missed_by(o, d);
+            // Lane by lane, the same answer whatever the other lanes hold.
+            let other = Curves::linear(&[vec![(o + d, 0.1), (o + d * 2.0, 0.1)]]);
+            let lanes = missed_by4(o, d, &Segments4::gather([&other.segments[0], &c.segments[0], &other.segments[0], &c.segments[0]]));
+            assert_eq!((lanes >> 1 & 1, lanes >> 3 & 1), (quick as u32, quick as u32));
+            assert_eq!(lanes & 0b101, 0, "a segment on the ray is never missed");
             hits += hit.is_some() as u32;
             rejected += quick as u32;
             assert!(!(quick && hit.is_some()), "round {round}: rejected a hit at {:?}", hit);

@@ -119,7 +119,7 @@ pub fn li(
             if let Some(ls) = light.sample(&scene.shapes, &it, u_prim, Vec2::new(lu, lv)) {
                 if ls.pdf > 0.0 && ls.li != Rgb::ZERO {
                     let wi = it.frame.to_local(ls.wi);
-                    let f = bsdf.eval(tc, wo, wi);
+                    let (f, bsdf_pdf) = bsdf.eval_and_pdf(tc, wo, wi);
                     if f != Rgb::ZERO {
                         let shadow = match ls.target {
                             Some(t) => it.spawn_ray_to(t),
@@ -131,7 +131,7 @@ pub fn li(
                             let w = if ls.delta || !plan.mis {
                                 1.0
                             } else {
-                                mis_power(light_pdf, bsdf.pdf(tc, wo, wi))
+                                mis_power(light_pdf, bsdf_pdf.unwrap_or_else(|| bsdf.pdf(tc, wo, wi)))
                             };
                             l += beta * f * ls.li * (w / light_pdf);
                         }
