@@ -1,50 +1,93 @@
 #!/usr/bin/env bash
-# Samples per second of Furnace beside Mitsuba 3 (scalar_rgb and llvm_ad_rgb) on the same
-# scene, in one run, interleaved so that machine noise hits all three alike.
+# Furnace beside Mitsuba 3 (scalar_rgb and llvm_ad_rgb) on every scene, in one run:
+# samples per second (interleaved, so that machine noise hits all three alike), their ratios,
+# and the time each needs to reach Mitsuba's own 64-spp error against the scene's reference.
 #
-#   bench/vs-mitsuba.sh [SCENE=tests/scenes/cbox.xml] [SPP=64] [THREADS=2] [REPEATS=3]
+#   bench/vs-mitsuba.sh [THREADS=2] [REPEATS=3] [SCENE.xml:SPP ...]
 #
-# Needs Mitsuba 3: bench/peers/setup.sh (venv outside the repo, $PEERS_VENV, default
-# ../peers-venv). Prints a markdown table: median seconds and samples/s over REPEATS, and the
-# ratio of Furnace's samples/s to each Mitsuba variant's. Render time only (scene loading
-# excluded) for all three; llvm gets one untimed warm-up run to fill Dr.Jit's kernel cache.
+# FURNACE=BINARY measures that binary instead of building this tree. Default scenes: tests/scenes/{cbox,textured,envmap,thinlens,hair}.xml at 64 spp and
+# examples/whimsical.xml at 16. Needs Mitsuba 3: bench/peers/setup.sh (venv outside the repo,
+# $PEERS_VENV, default ../peers-venv).
+#
+# Samples/s: median over REPEATS of width * height * spp / render seconds (scene loading
+# excluded for all three); llvm gets one untimed warm-up per scene to fill Dr.Jit's kernel
+# cache. Error: relMSE against tests/scenes/refs/NAME.exr (scenes without one get none).
+# Mitsuba's 64-spp error is measured on a scalar_rgb render (seed 0); llvm_ad_rgb uses the
+# same independent sampler, so its 64-spp error is the same in expectation. Furnace's renders
+# are deterministic: it renders 8, 12, 16, 24, 32, 48, 64, 96, 128 spp until its error is at
+# most Mitsuba's, and the spp that reaches it is interpolated log-log between the last two.
+# Time to error = that many samples at the measured samples/s.
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
-SCENE="${1:-$ROOT/tests/scenes/cbox.xml}"; SPP="${2:-64}"; THREADS="${3:-2}"; REPEATS="${4:-3}"
+THREADS="${1:-2}"; REPEATS="${2:-3}"; shift $(( $# < 2 ? $# : 2 ))
+SCENES=("$@")
+if [ ${#SCENES[@]} -eq 0 ]; then
+    for s in cbox textured envmap thinlens hair; do SCENES+=("$ROOT/tests/scenes/$s.xml:64"); done
+    SCENES+=("$ROOT/examples/whimsical.xml:16")
+fi
 PY="$ROOT/bench/peers/py.sh"
 TMP="$(mktemp -d)"; trap 'rm -rf "$TMP"' EXIT
 
-cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml"
-FURNACE="$ROOT/target/release/furnace"
+if [ -z "${FURNACE:-}" ]; then   # FURNACE=path/to/furnace measures that binary instead
+    cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml"
+    FURNACE="$ROOT/target/release/furnace"
+fi
 
-furnace_secs() {
-    "$FURNACE" render "$SCENE" --spp "$SPP" --threads "$THREADS" -o "$TMP/f.exr" 2>&1 \
+furnace_secs() { # SCENE SPP OUT
+    "$FURNACE" render "$1" --spp "$2" --threads "$THREADS" -o "$3" 2>&1 \
         | sed -n 's/.* in \([0-9.]*\)s on .*/\1/p'
 }
-mitsuba_secs() {
-    "$PY" "$ROOT/bench/peers/render.py" "$SCENE" --variant "$1" --spp "$SPP" --threads "$THREADS" \
-        --out "$TMP/m.exr" | sed -n 's/.* seconds=\([0-9.]*\) .*/\1/p'
+mitsuba_secs() { # VARIANT SCENE SPP OUT; prints nothing if Mitsuba fails
+    "$PY" "$ROOT/bench/peers/render.py" "$2" --variant "$1" --spp "$3" --threads "$THREADS" \
+        --out "$4" 2>/dev/null | sed -n 's/.* seconds=\([0-9.]*\) .*/\1/p' || true
 }
-median() { sort -g | awk '{a[NR]=$1} END {print (NR%2) ? a[(NR+1)/2] : (a[NR/2]+a[NR/2+1])/2}'; }
+relmse() { "$FURNACE" compare "$1" "$2" 2>/dev/null | awk '/^relMSE/ {print $2}'; }
+median() { sort -g | awk '{a[NR]=$1} END {if (NR) print (NR%2) ? a[(NR+1)/2] : (a[NR/2]+a[NR/2+1])/2}'; }
 
-mitsuba_secs llvm_ad_rgb > /dev/null   # warm Dr.Jit's kernel cache
-: > "$TMP/furnace"; : > "$TMP/scalar_rgb"; : > "$TMP/llvm_ad_rgb"
-for _ in $(seq "$REPEATS"); do
-    furnace_secs >> "$TMP/furnace"
-    mitsuba_secs scalar_rgb >> "$TMP/scalar_rgb"
-    mitsuba_secs llvm_ad_rgb >> "$TMP/llvm_ad_rgb"
-done
-
-read -r W H < <(sed -n 's/.*"width" value="\([0-9]*\)".*/\1/p; s/.*"height" value="\([0-9]*\)".*/\1/p' "$SCENE" | head -2 | paste -sd' ')
-samples=$(( W * H * SPP ))
-f=$(median < "$TMP/furnace")
-echo "scene $(basename "$SCENE"), ${W}x${H}, $SPP spp, $THREADS threads, median of $REPEATS ($(date -u +%F))"
+echo "Furnace $(git -C "$ROOT" rev-parse --short HEAD) beside Mitsuba 3, $THREADS threads, median of $REPEATS ($(date -u +%F))"
+echo "Furnace traces with: $("$FURNACE" render "${SCENES[0]%:*}" --spp 1 --threads 1 -o "$TMP/k.exr" 2>&1 | sed -n 's/.*tracing with an //p')"
 echo
-echo "| renderer | seconds | Msamples/s | Furnace / this |"
-echo "|---|---|---|---|"
-for r in furnace scalar_rgb llvm_ad_rgb; do
-    s=$(median < "$TMP/$r")
-    name=$r; [ "$r" = furnace ] || name="Mitsuba 3 $r"
-    awk -v n="$name" -v s="$s" -v f="$f" -v k="$samples" \
-        'BEGIN { printf "| %s | %.3f | %.3f | %.2fx |\n", n, s, k / s / 1e6, s / f }'
+echo "| scene | spp | Furnace Ms/s | scalar_rgb | llvm_ad_rgb | F / scalar | F / llvm | Mitsuba 64-spp relMSE | Furnace spp to reach it | llvm time / Furnace time to it |"
+echo "|---|---|---|---|---|---|---|---|---|---|"
+for entry in "${SCENES[@]}"; do
+    scene="${entry%:*}"; spp="${entry##*:}"; name="$(basename "$scene" .xml)"
+    read -r W H < <(sed -n 's/.*"width" value="\([0-9]*\)".*/\1/p; s/.*"height" value="\([0-9]*\)".*/\1/p' "$scene" | head -2 | paste -sd' ')
+    samples=$(( W * H * spp ))
+    mitsuba_secs llvm_ad_rgb "$scene" "$spp" "$TMP/warm.exr" > /dev/null
+    : > "$TMP/f"; : > "$TMP/s"; : > "$TMP/l"
+    for _ in $(seq "$REPEATS"); do
+        furnace_secs "$scene" "$spp" "$TMP/f.exr" >> "$TMP/f"
+        mitsuba_secs scalar_rgb "$scene" "$spp" "$TMP/s.exr" >> "$TMP/s"
+        mitsuba_secs llvm_ad_rgb "$scene" "$spp" "$TMP/l.exr" >> "$TMP/l"
+    done
+    rate() { local s; s=$(median < "$1"); [ -n "$s" ] && awk -v k="$samples" -v s="$s" 'BEGIN {printf "%.3f", k / s / 1e6}' || echo "failed"; }
+    f=$(rate "$TMP/f"); sc=$(rate "$TMP/s"); ll=$(rate "$TMP/l")
+    ratio() { [[ "$2" =~ ^[0-9.]+$ ]] && awk -v a="$1" -v b="$2" 'BEGIN {printf "%.2fx", a / b}' || echo "-"; }
+
+    ref="$ROOT/tests/scenes/refs/$name.exr"
+    m_err="-"; f_spp="-"; tte="-"
+    if [ -f "$ref" ]; then
+        if [ "$spp" = 64 ] && [ -s "$TMP/s" ]; then cp "$TMP/s.exr" "$TMP/m64.exr"; else mitsuba_secs scalar_rgb "$scene" 64 "$TMP/m64.exr" > /dev/null; fi
+        [ -f "$TMP/m64.exr" ] && m_err=$(relmse "$TMP/m64.exr" "$ref")
+        if [ "$m_err" != "-" ]; then
+            prev_s=""; prev_e=""
+            for s in 8 12 16 24 32 48 64 96 128; do
+                furnace_secs "$scene" "$s" "$TMP/ladder.exr" > /dev/null
+                e=$(relmse "$TMP/ladder.exr" "$ref")
+                if awk -v e="$e" -v m="$m_err" 'BEGIN {exit !(e <= m)}'; then
+                    f_spp=$(awk -v s1="$prev_s" -v e1="$prev_e" -v s2="$s" -v e2="$e" -v m="$m_err" \
+                        'BEGIN { if (s1 == "" || e1 <= e2) {printf "%.0f", s2; exit}
+                                 printf "%.0f", s1 * exp(log(e1 / m) / log(e1 / e2) * log(s2 / s1)) }')
+                    break
+                fi
+                prev_s=$s; prev_e=$e
+            done
+            [ "$f_spp" = "-" ] && f_spp=">128"
+            if [[ "$f_spp" =~ ^[0-9]+$ && "$ll" =~ ^[0-9.]+$ ]]; then
+                tte=$(awk -v fs="$f_spp" -v f="$f" -v l="$ll" 'BEGIN {printf "%.2fx", (64 / l) / (fs / f)}')
+            fi
+        fi
+        rm -f "$TMP/m64.exr"
+    fi
+    echo "| $name (${W}x${H}) | $spp | $f | $sc | $ll | $(ratio "$f" "$sc") | $(ratio "$f" "$ll") | $m_err | $f_spp | $tte |"
 done

@@ -39,12 +39,40 @@ impl SampleStream {
     pub fn next_4d(&mut self) -> [f32; 4] {
         let set = self.set;
         self.set += 1;
+        self.set_4d(set)
+    }
+
+    /// Takes the next 4 dimensions without computing them: [`Deferred::get`] computes them if
+    /// they are used. A set's values depend only on its coordinates, never on whether earlier
+    /// sets were computed, so an unused set costs nothing and changes nothing.
+    #[inline]
+    pub fn defer_4d(&mut self) -> Deferred {
+        self.set += 1;
+        Deferred { set: self.set - 1, values: None }
+    }
+
+    #[inline]
+    fn set_4d(&self, set: u32) -> [f32; 4] {
         if set < SOBOL_SETS {
             return sobol_burley::sample_4d(self.index, 0, hash_words(&[self.seed, set]));
         }
         let h = hash_words(&[self.seed, set, self.index]);
         let unit = |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
         [unit(1), unit(2), unit(3), unit(4)]
+    }
+}
+
+/// A 4-D set taken from a [`SampleStream`] and computed on first use.
+pub struct Deferred {
+    set: u32,
+    values: Option<[f32; 4]>,
+}
+
+impl Deferred {
+    /// The set's values; `s` must be the stream it was taken from.
+    #[inline]
+    pub fn get(&mut self, s: &SampleStream) -> [f32; 4] {
+        *self.values.get_or_insert_with(|| s.set_4d(self.set))
     }
 }
 
@@ -61,6 +89,26 @@ mod tests {
         assert_eq!(a, b);
         assert_ne!(a, SampleStream::new(7, 4, 3, 100).next_4d());
         assert_ne!(a, SampleStream::new(8, 3, 4, 100).next_4d());
+    }
+
+    /// A deferred set has the values `next_4d` would have given it, whenever it is computed,
+    /// and sets after it are the same whether or not it was.
+    #[test]
+    fn deferred_sets_match_drawn_ones() {
+        for index in [0u64, 5, 70_000] {
+            let mut drawn = SampleStream::new(3, 1, 2, index);
+            let all: Vec<[f32; 4]> = (0..8).map(|_| drawn.next_4d()).collect();
+            let mut s = SampleStream::new(3, 1, 2, index);
+            assert_eq!(s.next_4d(), all[0]);
+            let mut d1 = s.defer_4d();
+            let _unused = s.defer_4d();
+            assert_eq!(s.next_4d(), all[3]);
+            assert_eq!(d1.get(&s), all[1]);
+            assert_eq!(d1.get(&s), all[1]);
+            let mut late = s.defer_4d(); // a hashed set (past SOBOL_SETS)
+            assert_eq!(s.next_4d(), all[5]);
+            assert_eq!(late.get(&s), all[4]);
+        }
     }
 
     #[test]

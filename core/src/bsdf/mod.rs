@@ -78,6 +78,15 @@ impl Bsdf {
         }
     }
 
+    /// Whether `sample` uses its `u1` (to choose a lobe).
+    pub fn chooses_lobe(&self) -> bool {
+        match self {
+            Bsdf::Diffuse { .. } | Bsdf::Conductor(_) => false,
+            Bsdf::Dielectric(_) | Bsdf::Plastic(_) | Bsdf::Hair(_) => true,
+            Bsdf::TwoSided { front, back } => front.chooses_lobe() || back.chooses_lobe(),
+        }
+    }
+
     /// Whether the BSDF reflects nothing at all (paths end there).
     pub fn is_black(&self) -> bool {
         match self {

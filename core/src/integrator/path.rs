@@ -107,10 +107,12 @@ pub fn li(
             _ => it.uv.into(),
         };
         let [lu, lv, bu, bv] = s.next_4d();
-        let [lsel, bsel, rr, _] = s.next_4d();
+        // Light and primitive choice, lobe choice and roulette: computed only if used here.
+        let mut choices = s.defer_4d();
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
         if plan.light_sampling && bsdf.is_smooth() {
+            let lsel = if n_lights > 1 || scene.lights[0].chooses_primitive() { choices.get(s)[0] } else { 0.0 };
             let x = lsel * n_lights as f32;
             let k = (x as usize).min(n_lights - 1);
             let u_prim = (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON);
@@ -142,6 +144,7 @@ pub fn li(
 
         // BSDF sampling.
         st.bsdf_samples += 1;
+        let bsel = if bsdf.chooses_lobe() { choices.get(s)[1] } else { 0.0 };
         let Some(bs) = bsdf.sample(tc, wo, bsel, Vec2::new(bu, bv)) else {
             break;
         };
@@ -156,7 +159,7 @@ pub fn li(
 
         if depth >= settings.rr_depth {
             let q = (beta.max_element() * eta * eta).min(0.95);
-            if !(rr < q) {
+            if !(choices.get(s)[2] < q) {
                 break;
             }
             beta /= q;

@@ -129,6 +129,11 @@ impl Light {
         matches!(self, Light::Constant { .. } | Light::Envmap(_))
     }
 
+    /// Whether `sample` uses its `u_prim`: an area light of more than one primitive.
+    pub fn chooses_primitive(&self) -> bool {
+        matches!(self, Light::Area { cdf, .. } if cdf.len() > 2)
+    }
+
     /// Samples the light from `it` with `u_prim` (choosing a primitive) and `u`.
     pub fn sample(&self, shapes: &[Shape], it: &Interaction, u_prim: f32, u: Vec2) -> Option<LightSample> {
         match self {
