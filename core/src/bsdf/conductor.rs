@@ -56,22 +56,6 @@ impl Conductor {
         r.at(uv).pdf(wo, m) / (4.0 * wo.dot(m))
     }
 
-    /// `eval` and `pdf` together, sharing the half vector, the roughness lookup, D and G1(wo).
-    #[inline]
-    pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
-        let Some(r) = &self.rough else { return (Rgb::ZERO, 0.0) };
-        if wo.z <= 0.0 || wi.z <= 0.0 {
-            return (Rgb::ZERO, 0.0);
-        }
-        let m = (wo + wi).normalize();
-        let mf = r.at(uv);
-        let (d, g1o) = (mf.d(m), mf.g1(wo, m));
-        let f = fresnel_conductor(wo.dot(m), self.eta, self.k);
-        let v = d * (g1o * mf.g1(wi, m)) / (4.0 * wo.z);
-        let pdf = g1o * wo.dot(m).max(0.0) * d / wo.z / (4.0 * wo.dot(m));
-        (self.specular_reflectance.eval(uv) * f * v, pdf)
-    }
-
     #[inline]
     pub fn sample(&self, uv: TexCoord, wo: Vec3, u: Vec2) -> Option<BsdfSample> {
         if wo.z <= 0.0 {
@@ -95,11 +79,11 @@ impl Conductor {
         }
         // pdf and value from wi, exactly as `pdf` and `eval` compute them, so that MIS sees
         // the same numbers whichever strategy produced the direction.
-        let (f, pdf) = self.eval_pdf(uv, wo, wi);
+        let pdf = self.pdf(uv, wo, wi);
         if !(pdf > 0.0) {
             return None;
         }
-        let weight = f / pdf;
+        let weight = self.eval(uv, wo, wi) / pdf;
         weight.is_finite().then_some(BsdfSample { wi, weight, pdf, delta: false, eta: 1.0 })
     }
 }

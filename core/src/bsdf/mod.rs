@@ -163,21 +163,14 @@ impl Bsdf {
     }
 
     /// `eval`, and `pdf` too where computing it with the value costs little more than the
-    /// value alone (hair, rough conductors and rough plastic share their costly terms);
-    /// otherwise `None`, and `pdf` is called only if it is needed.
+    /// value alone (hair, whose terms are shared); otherwise `None`, and `pdf` is called only
+    /// if it is needed.
     #[inline]
     pub fn eval_and_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, Option<f32>) {
-        let some = |(f, pdf): (Rgb, f32)| (f, Some(pdf));
         match self {
-            Bsdf::Hair(h) => some(h.eval_pdf(wo, wi, hair::Hair::h_from(wo))),
-            Bsdf::Conductor(c) if c.rough.is_some() => some(c.eval_pdf(uv, wo, wi)),
-            Bsdf::Plastic(p) if p.rough.is_some() => some(p.eval_pdf(uv, wo, wi)),
-            Bsdf::TwoSided { front, back } => {
-                if wo.z >= 0.0 {
-                    front.eval_and_pdf(uv, wo, wi)
-                } else {
-                    back.eval_and_pdf(uv, flip(wo), flip(wi))
-                }
+            Bsdf::Hair(h) => {
+                let (f, pdf) = h.eval_pdf(wo, wi, hair::Hair::h_from(wo));
+                (f, Some(pdf))
             }
             _ => (self.eval(uv, wo, wi), None),
         }

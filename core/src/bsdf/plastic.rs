@@ -152,17 +152,6 @@ impl Plastic {
         (1.0 - p_spec) * wi.z * INV_PI + p_spec * self.specular(uv, wo, wi).1
     }
 
-    /// `eval` and `pdf` together, sharing the coating's Fresnel terms and the rough
-    /// specular lobe.
-    pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
-        if wo.z <= 0.0 || wi.z <= 0.0 {
-            return (Rgb::ZERO, 0.0);
-        }
-        let (f_o, p_spec) = self.probs(wo.z);
-        let (spec, spec_pdf) = self.specular(uv, wo, wi);
-        (self.diffuse_value(uv, wi, f_o) + spec, (1.0 - p_spec) * wi.z * INV_PI + p_spec * spec_pdf)
-    }
-
     pub fn sample(&self, uv: TexCoord, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
         if wo.z <= 0.0 {
             return None;
@@ -178,11 +167,11 @@ impl Plastic {
             if wi.z <= 0.0 {
                 return None;
             }
-            let (f, pdf) = self.eval_pdf(uv, wo, wi);
+            let pdf = self.pdf(uv, wo, wi);
             if !(pdf > 0.0) {
                 return None;
             }
-            let weight = f / pdf;
+            let weight = self.eval(uv, wo, wi) / pdf;
             return weight.is_finite().then_some(BsdfSample { wi, weight, pdf, delta: false, eta: 1.0 });
         }
         if u1 < p_spec {
