@@ -35,7 +35,7 @@ pub fn round_to_i128(x: f64) -> i128 {
         return x.round() as i128;
     }
     let i = x as i64; // towards zero
-    // Exact: below 2^52 a float minus its truncation is representable; above, x is whole.
+                      // Exact: below 2^52 a float minus its truncation is representable; above, x is whole.
     let frac = x - i as f64;
     (if frac >= 0.5 {
         i + 1
@@ -321,13 +321,33 @@ mod tests {
     /// signs, around 2^52 and 2^62 and beyond, zeros, infinities and NaN.
     #[test]
     fn fast_rounding_is_exact() {
-        let mut vals = vec![0.0, -0.0, 0.5, -0.5, 1.5, -1.5, 2.5, 0.49999999999999994, -0.49999999999999994,
-            f64::INFINITY, f64::NEG_INFINITY, f64::NAN, f64::MAX, f64::MIN_POSITIVE, 1e300, -1e300];
+        let mut vals = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.5,
+            -1.5,
+            2.5,
+            0.49999999999999994,
+            -0.49999999999999994,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            f64::MAX,
+            f64::MIN_POSITIVE,
+            1e300,
+            -1e300,
+        ];
         for e in [0, 1, 20, 51, 52, 53, 61, 62, 63, 100, 126, 127, 128] {
             let b = 2f64.powi(e);
             for d in [-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5] {
                 for x in [b + d, b - d, -(b + d), -(b - d), b * 1.25 + d] {
-                    vals.extend([x, f64::from_bits(x.to_bits() + 1), f64::from_bits(x.to_bits().saturating_sub(1))]);
+                    vals.extend([
+                        x,
+                        f64::from_bits(x.to_bits() + 1),
+                        f64::from_bits(x.to_bits().saturating_sub(1)),
+                    ]);
                 }
             }
         }

@@ -182,7 +182,10 @@ impl Hair {
         let m = mp(cos_i, cos_o, sin_i, sin_o, self.v[P_MAX], &self.mp_norm[P_MAX]);
         let f = f + a[P_MAX] * (m / (2.0 * PI));
         let pdf = pdf + w[P_MAX] * (m / (2.0 * PI));
-        (if f.is_finite() { f.max(Rgb::ZERO) } else { Rgb::ZERO }, if pdf.is_finite() { pdf.max(0.0) } else { 0.0 })
+        (
+            if f.is_finite() { f.max(Rgb::ZERO) } else { Rgb::ZERO },
+            if pdf.is_finite() { pdf.max(0.0) } else { 0.0 },
+        )
     }
 
     /// The offset across the fibre implied by `wo` and the normal: for a round fibre the

@@ -382,16 +382,17 @@ impl Accel {
             } else {
                 kids.extend([b2[n].first_index as usize, b2[n].first_index as usize + 1]);
                 while kids.len() < WIDTH {
-                    let open = (0..kids.len())
-                        .filter(|&k| !b2[kids[k]].is_leaf())
-                        .max_by(|&a, &b| b2[kids[a]].aabb().half_area().total_cmp(&b2[kids[b]].aabb().half_area()));
+                    let open = (0..kids.len()).filter(|&k| !b2[kids[k]].is_leaf()).max_by(|&a, &b| {
+                        b2[kids[a]].aabb().half_area().total_cmp(&b2[kids[b]].aabb().half_area())
+                    });
                     let Some(k) = open else { break };
                     let first = b2[kids[k]].first_index as usize;
                     kids[k] = first;
                     kids.push(first + 1);
                 }
             }
-            let boxes: Vec<(Vec3A, Vec3A)> = kids.iter().map(|&k| (b2[k].aabb().min, b2[k].aabb().max)).collect();
+            let boxes: Vec<(Vec3A, Vec3A)> =
+                kids.iter().map(|&k| (b2[k].aabb().min, b2[k].aabb().max)).collect();
             nodes[w] = Node::quantise(&boxes);
             for (lane, &k) in kids.iter().enumerate() {
                 let node = &b2[k];
@@ -482,7 +483,7 @@ impl Accel {
                 }
             }
         }
-        if curves & (curves - 1) == 0 {
+        if curves.count_ones() < 2 {
             return 0; // one segment or none: `Curves::intersect` tests it alone
         }
         let any = segs[curves.trailing_zeros() as usize].unwrap_or_else(|| unreachable!());
@@ -654,7 +655,8 @@ mod tests {
             let c = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 10.0;
             let size = if i % 7 == 0 { 3.0 } else { 0.3 };
             for _ in 0..3 {
-                let mut p = c + (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5) * size;
+                let mut p =
+                    c + (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5) * size;
                 if i % 5 == 1 {
                     p[i % 3] = c[i % 3]; // flat along one axis, like a box's wall: a flat box
                 }
@@ -663,7 +665,13 @@ mod tests {
             let b = 3 * i as u32;
             m.tris.push([b, b + 1, b + 2]);
         }
-        vec![Shape { geometry: Geometry::Mesh(m), bsdf: 0, light: None, flip_normals: false, name: "soup".into() }]
+        vec![Shape {
+            geometry: Geometry::Mesh(m),
+            bsdf: 0,
+            light: None,
+            flip_normals: false,
+            name: "soup".into(),
+        }]
     }
 
     /// Every kernel finds exactly what testing every primitive finds: the same closest hit
@@ -728,7 +736,10 @@ mod tests {
             for (i, (lo, hi)) in boxes.iter().enumerate() {
                 for a in 0..3 {
                     let plane = |p: usize| node.origin[a] + node.planes[p][i] as f32 * node.scale[a];
-                    assert!(plane(2 * a) <= lo[a] && plane(2 * a + 1) >= hi[a], "round {round}, box {i}, axis {a}");
+                    assert!(
+                        plane(2 * a) <= lo[a] && plane(2 * a + 1) >= hi[a],
+                        "round {round}, box {i}, axis {a}"
+                    );
                 }
             }
         }

@@ -539,7 +539,8 @@ mod tests {
         for round in 0..20_000 {
             let far = [1.0, 30.0, 1e3][round % 3];
             let centre = Vec3::new(rnd(), rnd(), rnd()) * far;
-            let axis = (Vec3::new(rnd(), rnd(), rnd()) - 0.5).normalize_or(Vec3::X) * [0.01, 1.0, 5.0][round % 5 % 3];
+            let axis = (Vec3::new(rnd(), rnd(), rnd()) - 0.5).normalize_or(Vec3::X)
+                * [0.01, 1.0, 5.0][round % 5 % 3];
             let r = [1e-3, 0.05, 0.3][round % 7 % 3];
             let c = Curves::linear(&[vec![(centre, r), (centre + axis, r * (0.3 + rnd()))]]);
             let target = centre + axis * rnd() + (Vec3::new(rnd(), rnd(), rnd()) - 0.5) * 3.0 * r;
@@ -549,7 +550,11 @@ mod tests {
             let quick = c.segments[0].missed_by(o, d);
             // Lane by lane, the same answer whatever the other lanes hold.
             let other = Curves::linear(&[vec![(o + d, 0.1), (o + d * 2.0, 0.1)]]);
-            let lanes = missed_by4(o, d, &Segments4::gather([&other.segments[0], &c.segments[0], &other.segments[0], &c.segments[0]]));
+            let lanes = missed_by4(
+                o,
+                d,
+                &Segments4::gather([&other.segments[0], &c.segments[0], &other.segments[0], &c.segments[0]]),
+            );
             assert_eq!((lanes >> 1 & 1, lanes >> 3 & 1), (quick as u32, quick as u32));
             assert_eq!(lanes & 0b101, 0, "a segment on the ray is never missed");
             hits += hit.is_some() as u32;

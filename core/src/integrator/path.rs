@@ -112,7 +112,8 @@ pub fn li(
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
         if plan.light_sampling && bsdf.is_smooth() {
-            let lsel = if n_lights > 1 || scene.lights[0].chooses_primitive() { choices.get(s)[0] } else { 0.0 };
+            let lsel =
+                if n_lights > 1 || scene.lights[0].chooses_primitive() { choices.get(s)[0] } else { 0.0 };
             let x = lsel * n_lights as f32;
             let k = (x as usize).min(n_lights - 1);
             let u_prim = (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON);
