@@ -156,7 +156,7 @@ impl fmt::Display for RenderPlan {
                 CameraModel::ThinLens { .. } => "thin lens: 2 lens dimensions per sample",
             }
         )?;
-        writeln!(f, "  - intersect (CWBVH)")?;
+        writeln!(f, "  - intersect (8-wide BVH)")?;
         if self.light_sampling {
             let kinds: Vec<&str> = self.lights.iter().map(|(k, _)| k.name()).collect();
             writeln!(f, "  - light sampling: {}", kinds.join(", "))?;
