@@ -626,7 +626,8 @@ impl Accel {
                 }
                 sp -= 1;
                 let (c, t) = stack[sp].assume_init();
-                if t <= tmax {
+                // The box test's own slack: a child that passed it is never dropped here.
+                if t <= tmax * FAR_SCALE {
                     cur = c;
                     break;
                 }
