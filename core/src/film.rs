@@ -34,8 +34,9 @@ pub fn round_to_i128(x: f64) -> i128 {
     if !(x.abs() < LIMIT) {
         return x.round() as i128;
     }
-    let i = x as i64; // towards zero
-                      // Exact: below 2^52 a float minus its truncation is representable; above, x is whole.
+    // Truncation towards zero; then the remainder, exact: below 2^52 a float minus its
+    // truncation is representable, and above it x is whole.
+    let i = x as i64;
     let frac = x - i as f64;
     (if frac >= 0.5 {
         i + 1
@@ -317,6 +318,8 @@ impl Accum {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     /// The fast rounding is `round() as i128` exactly: halves, near-halves, integers, both
     /// signs, around 2^52 and 2^62 and beyond, zeros, infinities and NaN.
     #[test]
@@ -362,8 +365,6 @@ mod tests {
             assert_eq!(round_to_i128(x), x.round() as i128, "{x:e} ({:#x})", x.to_bits());
         }
     }
-
-    use super::*;
 
     #[test]
     fn merge_is_order_independent_and_exact() {

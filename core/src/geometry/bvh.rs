@@ -1,7 +1,8 @@
 //! Furnace's wide BVH. obvhs builds a binary BVH (PLOC, reinsertion, and a SAH collapse of
 //! leaves to at most [`LEAF_MAX`] primitives); we collapse that into nodes of eight children
-//! whose boxes are stored as structure of arrays, so that one ray tests all eight at once:
-//! with AVX where the CPU has it, SSE on any other x86-64, plain code elsewhere ([`Kernel`]).
+//! whose boxes are quantised to 8 bits a plane and stored as structure of arrays, so that one
+//! ray tests all eight at once: with AVX2 where the CPU has it, SSE on any other x86-64, plain
+//! code elsewhere ([`Kernel`]).
 //! Every kernel computes the same IEEE operations in the same order (no fused multiply-add),
 //! so the choice changes speed, never an image. Closest-hit traversal visits children nearest
 //! first and skips any whose entry distance is past the closest hit so far; shadow rays stop at
@@ -113,8 +114,8 @@ struct PackedTri {
 /// The instruction set that tests a node's eight boxes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Kernel {
-    /// 8 lanes in one 256-bit register (AVX2).
-    Avx,
+    /// 8 lanes in one 256-bit register.
+    Avx2,
     /// 8 lanes in two 128-bit registers (every x86-64 CPU).
     Sse,
     /// A loop over the lanes.
@@ -127,7 +128,7 @@ impl Kernel {
         #[cfg(target_arch = "x86_64")]
         {
             if std::is_x86_feature_detected!("avx2") {
-                return Kernel::Avx;
+                return Kernel::Avx2;
             }
             Kernel::Sse
         }
@@ -137,11 +138,11 @@ impl Kernel {
 
     /// Every kernel this CPU can run, fastest first.
     pub fn available() -> Vec<Kernel> {
-        [Kernel::Avx, Kernel::Sse, Kernel::Scalar]
+        [Kernel::Avx2, Kernel::Sse, Kernel::Scalar]
             .into_iter()
             .filter(|&k| match k {
                 #[cfg(target_arch = "x86_64")]
-                Kernel::Avx => std::is_x86_feature_detected!("avx2"),
+                Kernel::Avx2 => std::is_x86_feature_detected!("avx2"),
                 #[cfg(target_arch = "x86_64")]
                 Kernel::Sse => true,
                 Kernel::Scalar => true,
@@ -153,7 +154,7 @@ impl Kernel {
 
     pub fn name(self) -> &'static str {
         match self {
-            Kernel::Avx => "8-wide BVH, AVX2",
+            Kernel::Avx2 => "8-wide BVH, AVX2",
             Kernel::Sse => "8-wide BVH, SSE",
             Kernel::Scalar => "8-wide BVH, scalar",
         }
@@ -500,7 +501,7 @@ impl Accel {
         let t = unsafe {
             match self.kernel {
                 #[cfg(target_arch = "x86_64")]
-                Kernel::Avx => self.closest_avx(&mut q),
+                Kernel::Avx2 => self.closest_avx(&mut q),
                 #[cfg(target_arch = "x86_64")]
                 Kernel::Sse => self.traverse::<SseTest, false>(&mut q),
                 _ => self.traverse::<ScalarTest, false>(&mut q),
@@ -524,7 +525,7 @@ impl Accel {
         unsafe {
             match self.kernel {
                 #[cfg(target_arch = "x86_64")]
-                Kernel::Avx => self.any_avx(&mut q),
+                Kernel::Avx2 => self.any_avx(&mut q),
                 #[cfg(target_arch = "x86_64")]
                 Kernel::Sse => self.traverse::<SseTest, true>(&mut q),
                 _ => self.traverse::<ScalarTest, true>(&mut q),
@@ -766,7 +767,7 @@ mod tests {
                 // SAFETY: the kernel is available.
                 let m = unsafe {
                     match kernel {
-                        Kernel::Avx => AvxTest::test(&node, &r, 0.0, f32::INFINITY).0,
+                        Kernel::Avx2 => AvxTest::test(&node, &r, 0.0, f32::INFINITY).0,
                         Kernel::Sse => SseTest::test(&node, &r, 0.0, f32::INFINITY).0,
                         Kernel::Scalar => ScalarTest::test(&node, &r, 0.0, f32::INFINITY).0,
                     }
