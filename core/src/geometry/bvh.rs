@@ -716,6 +716,42 @@ mod tests {
         }
     }
 
+    /// 20,000 triangles with one box between them: the builder still gives a shallow tree,
+    /// and traversal finds the closest of them, with its stack inline or on the heap (which
+    /// only trees deeper than 73 levels need).
+    #[test]
+    fn coincident_primitives_are_all_found() {
+        let mut m = Mesh::default();
+        for i in 0..20_000u32 {
+            // Identical boxes, slightly different depths along z.
+            let z = (i % 997) as f32 * 1e-4;
+            m.positions.extend([Vec3::new(0.0, 0.0, z), Vec3::new(1.0, 0.0, z), Vec3::new(0.0, 1.0, z)]);
+            m.tris.push([3 * i, 3 * i + 1, 3 * i + 2]);
+        }
+        let shapes = vec![Shape {
+            geometry: Geometry::Mesh(m),
+            bsdf: 0,
+            light: None,
+            flip_normals: false,
+            name: "stack".into(),
+        }];
+        let mut accel = Accel::build(&shapes);
+        assert!(accel.stack_size <= INLINE_STACK, "PLOC keeps even this tree shallow: {}", accel.stack_size);
+        let ray = Ray::new(Vec3::new(0.2, 0.2, 5.0), Vec3::NEG_Z);
+        // Then as if the tree were deeper than the inline stack: the heap stack is used.
+        for heap in [false, true] {
+            if heap {
+                accel.stack_size = INLINE_STACK + 1;
+            }
+            for kernel in Kernel::available() {
+                accel.set_kernel(kernel);
+                let hit = accel.intersect(&shapes, &ray).expect("a hit");
+                assert!((hit.t - (5.0 - 996e-4)).abs() < 1e-4, "{kernel:?}, heap {heap}: t {}", hit.t);
+                assert!(accel.occluded(&shapes, &ray));
+            }
+        }
+    }
+
     /// Quantised planes enclose their child's box, for boxes far from the origin, tiny, flat
     /// and huge alike.
     #[test]
