@@ -458,20 +458,36 @@ impl Accel {
 
     /// Intersects the primitive leaves call `k`.
     #[inline(always)]
-    fn hit(&self, shapes: &[Shape], k: usize, ray: &Ray, pre: &RayPre, tmax: f32) -> Option<(f32, Vec2)> {
+    /// `pretested`: a fibre segment has passed the quick rejection already.
+    fn hit(
+        &self,
+        shapes: &[Shape],
+        k: usize,
+        ray: &Ray,
+        pre: &RayPre,
+        tmax: f32,
+        pretested: bool,
+    ) -> Option<(f32, Vec2)> {
         let prim = self.prims[k];
         if prim.shape & TRIANGLE != 0 {
             let [p0, p1, p2] = self.tris[prim.index as usize].v;
             intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
         } else {
-            shapes[prim.shape as usize].intersect(prim.index as usize, ray, pre, tmax)
+            let shape = &shapes[prim.shape as usize];
+            match &shape.geometry {
+                Geometry::Curves(c) if pretested => {
+                    c.intersect_exact(prim.index as usize, ray.o, ray.d, ray.tmin, tmax).map(|h| h.t_aux())
+                }
+                _ => shape.intersect(prim.index as usize, ray, pre, tmax),
+            }
         }
     }
 
     /// Which of a leaf's primitives are fibre segments that the ray certainly misses (bit `j`
-    /// for the leaf's `j`-th), tested together when the leaf holds two or more.
+    /// for the leaf's `j`-th), tested together when the leaf holds two or more, and which were
+    /// tested.
     #[inline(always)]
-    fn curve_misses(&self, q: &Query, first: u32, count: u32) -> u32 {
+    fn curve_misses(&self, q: &Query, first: u32, count: u32) -> (u32, u32) {
         const _: () = assert!(LEAF_MAX <= 4, "missed_by4 tests four segments");
         let mut segs: [Option<&Segment>; 4] = [None; 4];
         let mut curves = 0u32;
@@ -485,10 +501,10 @@ impl Accel {
             }
         }
         if curves.count_ones() < 2 {
-            return 0; // one segment or none: `Curves::intersect` tests it alone
+            return (0, 0); // one segment or none: `Curves::intersect` tests it alone
         }
         let any = segs[curves.trailing_zeros() as usize].unwrap_or_else(|| unreachable!());
-        missed_by4(q.ray.o, q.ray.d, &Segments4::gather(segs.map(|s| s.unwrap_or(any)))) & curves
+        (missed_by4(q.ray.o, q.ray.d, &Segments4::gather(segs.map(|s| s.unwrap_or(any)))) & curves, curves)
     }
 
     /// The closest hit along `ray`, if any.
@@ -570,12 +586,13 @@ impl Accel {
             if cur & LEAF != 0 {
                 let first = cur & ((1 << FIRST_BITS) - 1);
                 let count = ((cur & !LEAF) >> FIRST_BITS) + 1;
-                let skip = if count > 1 { self.curve_misses(q, first, count) } else { 0 };
+                let (skip, tested) = if count > 1 { self.curve_misses(q, first, count) } else { (0, 0) };
                 for (j, k) in (first..first + count).enumerate() {
                     if skip >> j & 1 != 0 {
                         continue;
                     }
-                    if let Some((t, aux)) = self.hit(q.shapes, k as usize, q.ray, &q.pre, tmax) {
+                    let pretested = tested >> j & 1 != 0;
+                    if let Some((t, aux)) = self.hit(q.shapes, k as usize, q.ray, &q.pre, tmax, pretested) {
                         if t < tmax {
                             tmax = t;
                             q.best = Some((k, aux));

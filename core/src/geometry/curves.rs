@@ -248,6 +248,14 @@ pub struct FibreHit {
     pub piece: Piece,
 }
 
+impl FibreHit {
+    /// The distance, and what `Shape::interaction` needs back: s and the piece.
+    #[inline]
+    pub fn t_aux(&self) -> (f32, Vec2) {
+        (self.t, Vec2::new(self.s, self.piece as u32 as f32))
+    }
+}
+
 /// Relative margin for "strictly inside": a point on the surface of two pieces (where a joint
 /// sphere meets a frustum) is inside neither.
 const INSIDE_TOL: f64 = 1e-6;
@@ -356,8 +364,15 @@ impl Curves {
         self.intersect_exact(i, o, d, tmin, tmax)
     }
 
-    /// [`Curves::intersect`] without the quick f32 rejection.
-    fn intersect_exact(&self, i: usize, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> Option<FibreHit> {
+    /// [`Curves::intersect`] without the quick f32 rejection (for segments that passed it).
+    pub(crate) fn intersect_exact(
+        &self,
+        i: usize,
+        o: Vec3,
+        d: Vec3,
+        tmin: f32,
+        tmax: f32,
+    ) -> Option<FibreHit> {
         let seg = &self.segments[i];
         let origin = seg.p0.as_dvec3();
         let (o, d) = (o.as_dvec3() - origin, d.as_dvec3());

@@ -148,9 +148,7 @@ impl Shape {
                 intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
             }
             Geometry::Sphere(s) => intersect_sphere(s, ray, tmax).map(|t| (t, Vec2::ZERO)),
-            Geometry::Curves(c) => c
-                .intersect(prim, ray.o, ray.d, ray.tmin, tmax)
-                .map(|h| (h.t, Vec2::new(h.s, h.piece as u32 as f32))),
+            Geometry::Curves(c) => c.intersect(prim, ray.o, ray.d, ray.tmin, tmax).map(|h| h.t_aux()),
             Geometry::Disk(d) => {
                 let o = d.to_object.transform_point3(ray.o);
                 let dir = d.to_object.transform_vector3(ray.d);
