@@ -171,6 +171,9 @@ pub struct Accel {
     /// Stack entries a traversal can need: 7 per level below the root, and one.
     stack_size: usize,
     kernel: Kernel,
+    /// Whether any primitive is a fibre segment: leaves pre-test segments only then, so a
+    /// scene without fibres pays nothing for it.
+    curves: bool,
 }
 
 /// A ray's constants for the box tests.
@@ -352,7 +355,14 @@ impl Accel {
         }
         let kernel = Kernel::detect();
         if prims.is_empty() {
-            return Accel { nodes: Vec::new(), prims, tris: Vec::new(), stack_size: 0, kernel };
+            return Accel {
+                nodes: Vec::new(),
+                prims,
+                tris: Vec::new(),
+                stack_size: 0,
+                kernel,
+                curves: false,
+            };
         }
         // Past two million primitives (a quarter of a million fibres), obvhs' better builds
         // cost more time than they save (docs/BENCHMARKS.md, "Fur at scale").
@@ -435,7 +445,8 @@ impl Accel {
                 + std::mem::size_of_val(tris.as_slice()),
             "BVH built"
         );
-        Accel { nodes, prims, tris, stack_size: (WIDTH - 1) * depth + 1, kernel }
+        let curves = shapes.iter().any(|s| matches!(s.geometry, Geometry::Curves(_)));
+        Accel { nodes, prims, tris, stack_size: (WIDTH - 1) * depth + 1, kernel, curves }
     }
 
     pub fn prim_count(&self) -> usize {
@@ -586,7 +597,8 @@ impl Accel {
             if cur & LEAF != 0 {
                 let first = cur & ((1 << FIRST_BITS) - 1);
                 let count = ((cur & !LEAF) >> FIRST_BITS) + 1;
-                let (skip, tested) = if count > 1 { self.curve_misses(q, first, count) } else { (0, 0) };
+                let (skip, tested) =
+                    if self.curves && count > 1 { self.curve_misses(q, first, count) } else { (0, 0) };
                 for (j, k) in (first..first + count).enumerate() {
                     if skip >> j & 1 != 0 {
                         continue;

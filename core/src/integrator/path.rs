@@ -33,6 +33,8 @@ pub fn li(
     }
     let n_lights = scene.lights.len();
     let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
+    // Whether light sampling uses its choice number: to pick a light, or a light's primitive.
+    let chooses_light = n_lights > 1 || scene.lights.first().is_some_and(|l| l.chooses_primitive());
 
     let mut l = Rgb::ZERO;
     let mut beta = Rgb::ONE;
@@ -112,8 +114,7 @@ pub fn li(
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
         if plan.light_sampling && bsdf.is_smooth() {
-            let lsel =
-                if n_lights > 1 || scene.lights[0].chooses_primitive() { choices.get(s)[0] } else { 0.0 };
+            let lsel = if chooses_light { choices.get(s)[0] } else { 0.0 };
             let x = lsel * n_lights as f32;
             let k = (x as usize).min(n_lights - 1);
             let u_prim = (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON);
