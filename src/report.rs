@@ -37,6 +37,11 @@ pub struct ReportArgs {
     /// Render threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Render every sample count with this many seeds and report the median of each error
+    /// measure (and the mean relMSE beside it): under a small bright sun one seed's relMSE is
+    /// a lottery of fireflies, for every renderer.
+    #[arg(long, default_value_t = 1)]
+    pub seeds: u64,
     /// Set a scene parameter, as Mitsuba's -D.
     #[arg(short = 'D', value_name = "NAME=VALUE")]
     pub define: Vec<String>,
@@ -48,7 +53,11 @@ pub struct Row {
     pub technique: String,
     pub spp: u64,
     pub seconds: f64,
+    /// relMSE; with several seeds their median (as every error measure here).
     pub rel_mse: f64,
+    /// Mean relMSE over the seeds.
+    pub rel_mse_mean: f64,
+    pub seeds: u64,
     pub rmse: f64,
     pub p50: f64,
     pub p90: f64,
@@ -79,6 +88,16 @@ impl Technique {
     }
 }
 
+/// Turns MIS compensation of the scene's environment maps on or off.
+fn set_compensation(scene: &mut Scene, on: bool) {
+    for l in &mut scene.lights {
+        if let Light::Envmap(e) = l {
+            *e = Arc::new(e.with_compensation(on));
+        }
+    }
+    scene.plan.mis_compensation = on && scene.plan.mis_compensation;
+}
+
 /// The techniques to compare for this scene: the scene as it is, then an ablation for each
 /// effect its render plan uses that has one.
 fn techniques(scene: &Scene) -> Vec<Technique> {
@@ -89,7 +108,14 @@ fn techniques(scene: &Scene) -> Vec<Technique> {
             s.plan.light_sampling = false;
             s.plan.mis = false;
         }));
-        t.push(Technique::after_load("light sampling only", |s| s.plan.mis = false));
+        // Light sampling alone must sample every direction: no MIS compensation.
+        t.push(Technique::after_load("light sampling only", |s| {
+            s.plan.mis = false;
+            set_compensation(s, false);
+        }));
+    }
+    if plan.mis_compensation {
+        t.push(Technique::after_load("no MIS compensation", |s| set_compensation(s, false)));
     }
     if plan.lights.iter().any(|&(k, _)| k == LightKind::Envmap) {
         t.push(Technique::after_load("environment sampled uniformly", |s| {
@@ -138,6 +164,9 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
     if a.max_spp == 0 {
         bail!("--max-spp must be at least 1");
     }
+    if a.seeds == 0 {
+        bail!("--seeds must be at least 1");
+    }
     let base = Scene::load(&a.scene, defines)?;
     let seed = base.seed;
     let threads = a.threads.unwrap_or(0);
@@ -155,19 +184,27 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
         }
         None => {
             let spp = a.ref_spp.unwrap_or(16 * a.max_spp);
-            println!("reference: our own render at {spp} spp, seed {} (no --reference given)", seed + 1);
+            // The first seed the series do not use.
+            let ref_seed = seed + a.seeds;
+            println!("reference: our own render at {spp} spp, seed {ref_seed} (no --reference given)");
             let scene = Arc::new(Scene::load(&a.scene, defines)?);
             let t = Instant::now();
-            let settings = JobSettings { spp, seed: seed + 1, ..crate::local_settings() };
+            let settings = JobSettings { spp, seed: ref_seed, ..crate::local_settings() };
             let img = crate::render_local(scene, settings, threads, &|_, _| {})?.0;
             println!("  rendered in {:.1} s", t.elapsed().as_secs_f64());
             img.write_exr(&dir.join("reference.exr"))?;
             img
         }
     };
+    if a.seeds > 1 {
+        println!(
+            "seeds {seed}..{}: each error is the median over the seeds; seconds the mean",
+            seed + a.seeds - 1
+        );
+    }
     println!(
-        "{:<34} {:>6} {:>9} {:>10} {:>10} {:>8} {:>8} {:>8} {:>10}",
-        "technique", "spp", "seconds", "relMSE", "RMSE", "p50", "p90", "p99", "estimated"
+        "{:<34} {:>6} {:>9} {:>10} {:>10} {:>10} {:>8} {:>8} {:>8} {:>10}",
+        "technique", "spp", "seconds", "relMSE", "mean relMSE", "RMSE", "p50", "p90", "p99", "estimated"
     );
     let mut rows = Vec::new();
     for tech in &techs {
@@ -175,33 +212,49 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
         let mut spent = 0.0;
         let mut spp = 1;
         while spp <= a.max_spp && spent <= a.budget {
-            let t = Instant::now();
-            let settings = JobSettings { spp, seed, ..crate::local_settings() };
-            let (img, _, estimated, _) = crate::render_local(scene.clone(), settings, threads, &|_, _| {})?;
-            let estimated = estimated.unwrap_or(f64::NAN);
-            let seconds = t.elapsed().as_secs_f64();
-            spent += seconds;
-            let c = img.compare(&reference).with_context(|| {
-                format!(
-                    "reference is {}x{}, the scene renders {}x{}",
-                    reference.width, reference.height, img.width, img.height
-                )
-            })?;
-            let [p50, p90, p99] = c.rel_err_percentiles;
+            let mut runs: Vec<[f64; 7]> = Vec::new();
+            for s in 0..a.seeds {
+                let t = Instant::now();
+                let settings = JobSettings { spp, seed: seed + s, ..crate::local_settings() };
+                let (img, _, estimated, _) =
+                    crate::render_local(scene.clone(), settings, threads, &|_, _| {})?;
+                let seconds = t.elapsed().as_secs_f64();
+                spent += seconds;
+                let c = img.compare(&reference).with_context(|| {
+                    format!(
+                        "reference is {}x{}, the scene renders {}x{}",
+                        reference.width, reference.height, img.width, img.height
+                    )
+                })?;
+                let [p50, p90, p99] = c.rel_err_percentiles;
+                runs.push([seconds, c.rel_mse, c.rmse, p50, p90, p99, estimated.unwrap_or(f64::NAN)]);
+            }
+            let median = |k: usize| median(runs.iter().map(|r| r[k]).collect());
             let row = Row {
                 technique: tech.name.clone(),
                 spp,
-                seconds,
-                rel_mse: c.rel_mse,
-                rmse: c.rmse,
-                p50,
-                p90,
-                p99,
-                estimated,
+                seconds: runs.iter().map(|r| r[0]).sum::<f64>() / runs.len() as f64,
+                rel_mse: median(1),
+                rel_mse_mean: runs.iter().map(|r| r[1]).sum::<f64>() / runs.len() as f64,
+                seeds: a.seeds,
+                rmse: median(2),
+                p50: median(3),
+                p90: median(4),
+                p99: median(5),
+                estimated: median(6),
             };
             println!(
-                "{:<34} {:>6} {:>9.3} {:>10.3e} {:>10.3e} {:>8.4} {:>8.4} {:>8.4} {:>10.3e}",
-                row.technique, spp, seconds, row.rel_mse, row.rmse, p50, p90, p99, estimated
+                "{:<34} {:>6} {:>9.3} {:>10.3e} {:>10.3e} {:>10.3e} {:>8.4} {:>8.4} {:>8.4} {:>10.3e}",
+                row.technique,
+                spp,
+                row.seconds,
+                row.rel_mse,
+                row.rel_mse_mean,
+                row.rmse,
+                row.p50,
+                row.p90,
+                row.p99,
+                row.estimated
             );
             rows.push(row);
             spp *= 2;
@@ -215,6 +268,19 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
         ["report.csv", "report.svg", "report.png"].map(|f| dir.join(f).display().to_string()).join(", ")
     );
     Ok(())
+}
+
+/// The median (the mean of the middle two for an even count); NaN stays last.
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        f64::NAN
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
 }
 
 /// Least-squares slope of log(relMSE) against log(x).
@@ -270,13 +336,23 @@ pub fn technique_names(rows: &[Row]) -> Vec<&str> {
 
 fn csv(rows: &[Row]) -> String {
     let mut out = String::from(
-        "technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99,estimated_rel_mse\n",
+        "technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99,estimated_rel_mse,rel_mse_mean,seeds\n",
     );
     for r in rows {
         let _ = writeln!(
             out,
-            "\"{}\",{},{:.6},{:.6e},{:.6e},{:.6},{:.6},{:.6},{:.6e}",
-            r.technique, r.spp, r.seconds, r.rel_mse, r.rmse, r.p50, r.p90, r.p99, r.estimated
+            "\"{}\",{},{:.6},{:.6e},{:.6e},{:.6},{:.6},{:.6},{:.6e},{:.6e},{}",
+            r.technique,
+            r.spp,
+            r.seconds,
+            r.rel_mse,
+            r.rmse,
+            r.p50,
+            r.p90,
+            r.p99,
+            r.estimated,
+            r.rel_mse_mean,
+            r.seeds
         );
     }
     out

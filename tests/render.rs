@@ -244,11 +244,61 @@ fn max_depth_zero_renders_black_and_one_shows_only_emitters() {
     assert!(acc.develop().data.iter().any(|p| p.x > 1.0));
 }
 
+/// Under a small bright sun one seed's relMSE is a lottery of fireflies, for every renderer:
+/// renders of seeds 0 to 4 at 64 spp must have a median relMSE of at most `factor` x
+/// Mitsuba's median over the same seeds, and their mean image the reference's mean luminance
+/// within `lum_tol`.
+fn check_reference_median(
+    scene: &str,
+    reference: &str,
+    mitsuba_rel_mse_64: [f64; 5],
+    factor: f64,
+    lum_tol: f64,
+) {
+    let s = load(scene, &[]);
+    let r = common::reference(reference);
+    let mut errs = Vec::new();
+    let mut lum = 0.0;
+    for seed in 0..5 {
+        let (acc, _) = render(&s, 64, seed);
+        assert_eq!(acc.dropped.total(), 0);
+        let c = acc.develop().compare(&r).expect("same size");
+        errs.push(c.rel_mse);
+        lum += c.mean_lum / c.ref_mean_lum / 5.0;
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[2]
+    };
+    let (ours, theirs) = (median(errs.clone()), median(mitsuba_rel_mse_64.to_vec()));
+    eprintln!("{scene}: relMSE {errs:.5?}, median {ours:.5} ({:.2}x Mitsuba's {theirs})", ours / theirs);
+    assert!(ours <= factor * theirs, "{scene}: median relMSE {ours} > {factor} x Mitsuba's {theirs}");
+    assert!((lum - 1.0).abs() < lum_tol, "{scene}: mean luminance ratio {lum}");
+}
+
 #[test]
 fn envmap_matches_mitsuba_reference() {
     // Envmap with a 0.002 sr sun of radiance 2000, rough gold (GGX 0.15), rough glass (GGX 0.1),
-    // smooth plastic and diffuse. Mitsuba 3.9.1 scalar_rgb, 64 spp, seed 0: relMSE 0.01239.
-    check_reference("envmap.xml", "envmap.exr", 0.01239);
+    // smooth plastic and diffuse. Mitsuba 3.9.1 scalar_rgb, 64 spp, seeds 0..4: relMSE
+    // 0.01239, 0.00710, 0.00920, 0.01224, 0.00608 (median 0.00920). Issue 16: at most 0.75x.
+    check_reference_median(
+        "envmap.xml",
+        "envmap.exr",
+        [0.01239, 0.00710, 0.00920, 0.01224, 0.00608],
+        0.75,
+        0.01,
+    );
+}
+
+#[test]
+fn small_blazing_sun_matches_mitsuba_reference() {
+    // A 0.5-degree sun of radiance 1e5 in a 1024 x 512 map; rough plastic, anisotropic copper,
+    // thin dielectric, Beckmann silver 0.02. Mitsuba 3.9.1 scalar_rgb, 64 spp, seeds 0..4:
+    // 0.02246 (a caustic firefly), 0.00179, 0.00147, 0.00120, 0.00128 (median 0.00147).
+    // The silver sphere's caustics (the sun in its mirror, found by BSDF sampling alone) are rare
+    // and bright: 320 samples miss some of their energy, and Mitsuba's five renders average
+    // 0.9855 of the reference's luminance (ours 0.9848). Hence 2.5%.
+    check_reference_median("sun.xml", "sun.exr", [0.02246, 0.00179, 0.00147, 0.00120, 0.00128], 1.0, 0.025);
 }
 
 #[test]

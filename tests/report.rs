@@ -15,6 +15,8 @@ struct Row {
     spp: f64,
     rel_mse: f64,
     p90: f64,
+    rel_mse_mean: f64,
+    seeds: f64,
 }
 
 fn read_csv(path: &std::path::Path) -> Vec<Row> {
@@ -22,18 +24,25 @@ fn read_csv(path: &std::path::Path) -> Vec<Row> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next().unwrap(),
-        "technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99,estimated_rel_mse"
+        "technique,spp,seconds,rel_mse,rmse,rel_err_p50,rel_err_p90,rel_err_p99,estimated_rel_mse,rel_mse_mean,seeds"
     );
     lines
         .map(|l| {
             let (name, rest) = l.strip_prefix('"').unwrap().split_once("\",").unwrap();
             let f: Vec<f64> = rest.split(',').map(|v| v.parse().unwrap()).collect();
-            assert_eq!(f.len(), 8, "{l}");
+            assert_eq!(f.len(), 10, "{l}");
             // The estimate needs 2 samples per pixel.
-            assert!(f[..7].iter().all(|v| v.is_finite() && *v >= 0.0), "{l}");
+            assert!(f[..7].iter().chain(&f[8..]).all(|v| v.is_finite() && *v >= 0.0), "{l}");
             assert_eq!(f[7].is_finite(), f[0] >= 2.0, "{l}");
             assert!(f[4] <= f[5] && f[5] <= f[6], "percentiles out of order: {l}");
-            Row { technique: name.to_string(), spp: f[0], rel_mse: f[2], p90: f[5] }
+            Row {
+                technique: name.to_string(),
+                spp: f[0],
+                rel_mse: f[2],
+                p90: f[5],
+                rel_mse_mean: f[8],
+                seeds: f[9],
+            }
         })
         .collect()
 }
@@ -179,6 +188,56 @@ fn environment_importance_sampling_beats_uniform_sampling() {
         last(&rows, "environment sampled uniformly").p90,
     );
     assert!(uniform > 2.0 * is, "p90 uniform {uniform} vs importance sampled {is}");
+}
+
+/// With --seeds, each error is the median over the seeds: here the relMSE of three seeds
+/// rendered one by one with `furnace render --seed` and compared with `furnace compare`.
+/// The envmap scene also gets the MIS-compensation ablation, which must not beat the
+/// compensated default at the same spp.
+#[test]
+fn several_seeds_report_the_median_error() {
+    let dir = scratch("report-seeds");
+    let scene = scenes().join("envmap.xml");
+    let reference = scenes().join("refs/envmap.exr");
+    let o = furnace()
+        .arg("report")
+        .arg(&scene)
+        .arg("--reference")
+        .arg(&reference)
+        .args(["--max-spp", "4", "--seeds", "3", "-D", "max_depth=3", "-o"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{out}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("median over the seeds"), "{out}");
+    let rows = read_csv(&dir.join("report.csv"));
+    assert!(rows.iter().all(|r| r.seeds == 3.0));
+    let main = rows.iter().find(|r| r.technique.starts_with("path tracer") && r.spp == 4.0).unwrap();
+    let mut errs: Vec<f64> = (0..3)
+        .map(|seed| {
+            let img = dir.join(format!("s{seed}.exr"));
+            let r = furnace()
+                .args(["render", "--spp", "4", "-D", "max_depth=3", "--seed", &seed.to_string(), "-o"])
+                .arg(&img)
+                .arg(&scene)
+                .output()
+                .unwrap();
+            assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+            furnace_core::Image::read_exr(&img)
+                .unwrap()
+                .compare(&furnace_core::Image::read_exr(&reference).unwrap())
+                .unwrap()
+                .rel_mse
+        })
+        .collect();
+    let mean = errs.iter().sum::<f64>() / 3.0;
+    errs.sort_by(f64::total_cmp);
+    assert!((main.rel_mse / errs[1] - 1.0).abs() < 1e-5, "median {} vs {errs:?}", main.rel_mse);
+    assert!((main.rel_mse_mean / mean - 1.0).abs() < 1e-5, "mean {} vs {mean}", main.rel_mse_mean);
+    let plain = rows.iter().find(|r| r.technique == "no MIS compensation" && r.spp == 4.0).unwrap();
+    assert!(plain.p90 >= main.p90, "p90 without compensation {} vs {}", plain.p90, main.p90);
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// A noise-target render (the farm in one process) stops each tile at its target: the result

@@ -28,6 +28,9 @@ pub struct RenderPlan {
     /// but without MIS, emission that BSDF-sampled rays find is left to light sampling (only
     /// reachable as an ablation: derived plans have MIS whenever such lights exist).
     pub mis: bool,
+    /// Light sampling of an environment map leaves directions no brighter than its mean to
+    /// BSDF sampling (MIS compensation; see `light::envmap`).
+    pub mis_compensation: bool,
     /// Rays that leave the scene look up lights at infinity.
     pub escaped_rays_lookup: bool,
     /// BSDF plugins in use.
@@ -102,6 +105,10 @@ impl RenderPlan {
             lights,
             light_sampling,
             mis,
+            mis_compensation: scene
+                .lights
+                .iter()
+                .any(|l| matches!(l, crate::light::Light::Envmap(e) if e.compensated())),
             escaped_rays_lookup: !scene.infinite_lights.is_empty(),
             bsdfs,
             textures,
@@ -172,7 +179,11 @@ impl fmt::Display for RenderPlan {
             writeln!(f, "  - escaped rays: infinite lights")?;
         }
         if self.has_light(LightKind::Envmap) {
-            writeln!(f, "  - environment importance sampling (luminance x solid angle per texel)")?;
+            writeln!(
+                f,
+                "  - environment importance sampling (piecewise-bilinear luminance x solid angle, hierarchical warp{})",
+                if self.mis_compensation { ", MIS-compensated" } else { "" }
+            )?;
         }
         writeln!(f, "  - Russian roulette from depth {}", self.rr_depth)
     }

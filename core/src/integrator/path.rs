@@ -56,13 +56,13 @@ pub fn li(
                 st.escaped_lookups += 1;
                 for &k in &scene.infinite_lights {
                     let light = &scene.lights[k as usize];
-                    let le = light.le_infinite(ray.d);
-                    let w = if unweighted {
-                        1.0
+                    let (le, w) = if unweighted {
+                        (light.le_infinite(ray.d), 1.0)
                     } else if !plan.mis {
-                        0.0
+                        (Rgb::ZERO, 0.0)
                     } else {
-                        mis_power(prev_pdf, sel_pdf * light.pdf_infinite(ray.d))
+                        let (le, pdf) = light.le_pdf_infinite(ray.d);
+                        (le, mis_power(prev_pdf, sel_pdf * pdf))
                     };
                     l += beta * le * w;
                 }

@@ -217,8 +217,8 @@ impl Light {
                 target: None,
             }),
             Light::Envmap(e) => {
-                let (wi, pdf) = e.sample(u)?;
-                Some(LightSample { wi, li: e.eval(wi), pdf, delta: false, target: None })
+                let (wi, li, pdf) = e.sample(u)?;
+                Some(LightSample { wi, li, pdf, delta: false, target: None })
             }
         }
     }
@@ -270,6 +270,14 @@ impl Light {
             Light::Constant { radiance } => *radiance,
             Light::Envmap(e) => e.eval(d),
             _ => Rgb::ZERO,
+        }
+    }
+
+    /// [`Light::le_infinite`] and [`Light::pdf_infinite`] at once.
+    pub fn le_pdf_infinite(&self, d: Vec3) -> (Rgb, f32) {
+        match self {
+            Light::Envmap(e) => e.eval_pdf(d),
+            _ => (self.le_infinite(d), self.pdf_infinite(d)),
         }
     }
 }
