@@ -307,7 +307,10 @@ fn summary(rows: &[Row], main: &str) {
         });
         // Not reached: still falling (the last doubling's slope below -0.5) means slow, and
         // the time is extrapolated at that slope; levelling off means bias.
+        // The last doubling's slope, unless the whole series falls steadily and only the last
+        // step is noise (fireflies): then the whole series' slope.
         let tail = s.len().checked_sub(2).map(|i| log_slope(s[i..].iter().map(|r| (r.seconds, r.rel_mse))));
+        let tail = tail.map(|k| if slope < -0.8 { k.min(slope) } else { k });
         let reach = match (reach, s.first(), s.last(), tail) {
             (Some(t), ..) => format!("{t:.2} s"),
             (None, Some(first), ..) if first.rel_mse <= target * 1.001 => format!("{:.2} s", first.seconds),
