@@ -4,7 +4,7 @@
 mod common;
 
 use common::*;
-use furnace_core::light::LightKind;
+use furnace_core::light::{Light, LightKind};
 use furnace_core::plan::CameraModel;
 use furnace_core::{render_region, Accum, Region};
 
@@ -91,6 +91,63 @@ fn white_furnace_closed_emitters_return_one_over_one_minus_albedo() {
             assert!(err < 0.01, "{shape} a={a}: channel {c} mean {mean}, expected {expected}");
         }
         assert!(img.data.iter().all(|p| p.is_finite() && p.min_element() > 0.0));
+    }
+}
+
+/// A diffuse plane (albedo 0.5) under the sun/sky map, direct light only: every pixel reads
+/// 0.5 / pi times the map's irradiance on an upward face, E = integral of L cos theta over the
+/// upper hemisphere, which a midpoint rule over the map (16 points a texel) gives
+/// independently. With MIS compensation (light sampling leaves the dim sky to BSDF sampling)
+/// and without.
+#[test]
+fn a_diffuse_plane_under_the_sun_reads_its_irradiance() {
+    for comp in ["true", "false"] {
+        let xml = format!(
+            r#"<scene version="3.0.0">
+            <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+            <sensor type="perspective"><float name="fov" value="30"/>
+                <transform name="to_world"><lookat origin="0, 5, 0" target="0, 0, 0" up="0, 0, 1"/></transform>
+                <sampler type="independent"><integer name="sample_count" value="64"/></sampler>
+                <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
+                    <rfilter type="box"/></film>
+            </sensor>
+            <emitter type="envmap"><string name="filename" value="assets/sun_sky.exr"/>
+                <boolean name="mis_compensation" value="{comp}"/></emitter>
+            <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="100"/></transform>
+                <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+        </scene>"#
+        );
+        let s = load_str(&xml).unwrap();
+        let Light::Envmap(env) = &s.lights[0] else { panic!("an envmap") };
+        assert_eq!(env.compensated(), comp == "true");
+        let (w, h, m) = (1024usize, 512usize, 4usize);
+        let mut e = [0.0f64; 3];
+        for k in 0..h * m / 2 {
+            let v = (k as f64 + 0.5) / (h * m) as f64;
+            let (st, ct) = (std::f64::consts::PI * v).sin_cos();
+            let da = 2.0 * std::f64::consts::PI.powi(2) * st / (w * m * h * m) as f64;
+            for i in 0..w * m {
+                let u = (i as f64 + 0.5) / (w * m) as f64;
+                let (sp, cp) = (2.0 * std::f64::consts::PI * u).sin_cos();
+                let d = glam::Vec3::new((st * sp) as f32, ct as f32, (-st * cp) as f32);
+                let l = env.eval(d);
+                for c in 0..3 {
+                    e[c] += l[c] as f64 * ct * da;
+                }
+            }
+        }
+        let (acc, _) = render(&s, 64, 3);
+        assert_eq!(acc.dropped.total(), 0);
+        let img = acc.develop();
+        for c in 0..3 {
+            let expected = 0.5 / std::f64::consts::PI * e[c];
+            let mean = img.data.iter().map(|p| p[c] as f64).sum::<f64>() / img.data.len() as f64;
+            eprintln!("compensation {comp}, channel {c}: {mean} vs {expected}");
+            assert!(
+                (mean / expected - 1.0).abs() < 0.005,
+                "compensation {comp}, channel {c}: {mean} vs {expected}"
+            );
+        }
     }
 }
 
