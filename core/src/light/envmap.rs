@@ -293,21 +293,26 @@ struct Warp {
     total: f64,
 }
 
+/// One level of the warp's tree. Its width and height are even (padded with zeros), so that
+/// the four children of any node of the level above are in it.
 #[derive(Clone, Debug)]
 struct Level {
     w: usize,
-    h: usize,
     sums: Vec<f32>,
 }
 
 impl Level {
+    fn zeros(w: usize, h: usize) -> Level {
+        let (w, h) = (w + (w & 1), h + (h & 1));
+        Level { w, sums: vec![0.0; w * h] }
+    }
+
+    /// The 2 x 2 block at (2x, 2y): [(0, 0), (1, 0), (0, 1), (1, 1)].
     #[inline]
-    fn at(&self, i: usize, k: usize) -> f32 {
-        if i < self.w && k < self.h {
-            self.sums[k * self.w + i]
-        } else {
-            0.0
-        }
+    fn block(&self, x: usize, y: usize) -> [f32; 4] {
+        let top = 2 * y * self.w + 2 * x;
+        let bottom = top + self.w;
+        [self.sums[top], self.sums[top + 1], self.sums[bottom], self.sums[bottom + 1]]
     }
 }
 
@@ -315,27 +320,27 @@ impl Warp {
     fn new(nu: usize, nv: usize, corners: Corners) -> Warp {
         let mut warp = Warp { nu, nv, corners, levels: Vec::new(), total: 0.0 };
         // The cells' 2 x 2 block sums, straight from their corners.
-        let (w, h) = (nu.div_ceil(2), nv.div_ceil(2));
-        let mut cur = Level { w, h, sums: vec![0.0; w * h] };
+        let (mut w, mut h) = (nu.div_ceil(2), nv.div_ceil(2));
+        let mut cur = Level::zeros(w, h);
         for k in 0..nv {
             for i in 0..nu {
                 let m = warp.cell_mean(i, k);
                 warp.total += m as f64;
-                cur.sums[k / 2 * w + i / 2] += m;
+                cur.sums[k / 2 * cur.w + i / 2] += m;
             }
         }
-        warp.levels.push(cur.clone());
-        while cur.w > 1 || cur.h > 1 {
-            let (w, h) = (cur.w.div_ceil(2), cur.h.div_ceil(2));
-            let mut next = Level { w, h, sums: vec![0.0; w * h] };
-            for k in 0..cur.h {
-                for i in 0..cur.w {
-                    next.sums[k / 2 * w + i / 2] += cur.sums[k * cur.w + i];
+        while w > 1 || h > 1 {
+            let mut next = Level::zeros(w.div_ceil(2), h.div_ceil(2));
+            for k in 0..h {
+                for i in 0..w {
+                    next.sums[k / 2 * next.w + i / 2] += cur.sums[k * cur.w + i];
                 }
             }
-            warp.levels.push(next.clone());
+            warp.levels.push(cur);
             cur = next;
+            (w, h) = (w.div_ceil(2), h.div_ceil(2));
         }
+        warp.levels.push(cur);
         warp
     }
 
@@ -371,15 +376,9 @@ impl Warp {
         }
         let (mut ux, mut uy) = (ux.clamp(0.0, ONE_BELOW), uy.clamp(0.0, ONE_BELOW));
         let (mut x, mut y) = (0usize, 0usize);
-        for l in (0..self.levels.len() - 1).rev() {
-            let lev = &self.levels[l];
-            let (i, k) = (2 * x, 2 * y);
-            let (dx, dy) = choose(
-                [lev.at(i, k), lev.at(i + 1, k), lev.at(i, k + 1), lev.at(i + 1, k + 1)],
-                &mut ux,
-                &mut uy,
-            )?;
-            (x, y) = (i + dx, k + dy);
+        for lev in self.levels[..self.levels.len() - 1].iter().rev() {
+            let (dx, dy) = choose(lev.block(x, y), &mut ux, &mut uy)?;
+            (x, y) = (2 * x + dx, 2 * y + dy);
         }
         let (i, k) = (2 * x, 2 * y);
         let cells = [
