@@ -5,21 +5,22 @@
 #
 #   bench/vs-mitsuba.sh [THREADS=2] [REPEATS=3] [SCENE.xml:SPP ...]
 #
-# FURNACE=BINARY measures that binary instead of building this tree. Default scenes: tests/scenes/{cbox,textured,envmap,thinlens,hair}.xml at 64 spp and
+# SEEDS=N (default 1): both errors are medians over seeds 0..N-1 (under a small bright sun
+# one seed's relMSE is a lottery of fireflies). FURNACE=BINARY measures that binary instead of building this tree. Default scenes: tests/scenes/{cbox,textured,envmap,thinlens,hair}.xml at 64 spp and
 # examples/whimsical.xml at 16. Needs Mitsuba 3: bench/peers/setup.sh (venv outside the repo,
 # $PEERS_VENV, default ../peers-venv).
 #
 # Samples/s: median over REPEATS of width * height * spp / render seconds (scene loading
 # excluded for all three); llvm gets one untimed warm-up per scene to fill Dr.Jit's kernel
 # cache. Error: relMSE against tests/scenes/refs/NAME.exr (scenes without one get none).
-# Mitsuba's 64-spp error is measured on a scalar_rgb render (seed 0); llvm_ad_rgb uses the
+# Mitsuba's 64-spp error is measured on scalar_rgb renders (seed 0, or the median over SEEDS); llvm_ad_rgb uses the
 # same independent sampler, so its 64-spp error is the same in expectation. Furnace's renders
 # are deterministic: it renders 8, 12, 16, 24, 32, 48, 64, 96, 128 spp until its error is at
 # most Mitsuba's, and the spp that reaches it is interpolated log-log between the last two.
 # Time to error = that many samples at the measured samples/s.
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
-THREADS="${1:-2}"; REPEATS="${2:-3}"; shift $(( $# < 2 ? $# : 2 ))
+THREADS="${1:-2}"; REPEATS="${2:-3}"; SEEDS="${SEEDS:-1}"; shift $(( $# < 2 ? $# : 2 ))
 SCENES=("$@")
 if [ ${#SCENES[@]} -eq 0 ]; then
     for s in cbox textured envmap thinlens hair; do SCENES+=("$ROOT/tests/scenes/$s.xml:64"); done
@@ -44,14 +45,15 @@ mitsuba_secs() { # VARIANT SCENE SPP OUT; prints nothing if Mitsuba fails
 relmse() { "$FURNACE" compare "$1" "$2" 2>/dev/null | awk '/^relMSE/ {print $2}'; }
 median() { sort -g | awk '{a[NR]=$1} END {if (NR) print (NR%2) ? a[(NR+1)/2] : (a[NR/2]+a[NR/2+1])/2}'; }
 
-echo "Furnace $(git -C "$ROOT" rev-parse --short HEAD) beside Mitsuba 3, $THREADS threads, median of $REPEATS ($(date -u +%F))"
+echo "Furnace $(git -C "$ROOT" rev-parse --short HEAD) beside Mitsuba 3, $THREADS threads, median of $REPEATS, errors over $SEEDS seed(s) ($(date -u +%F))"
 echo "Furnace traces with: $("$FURNACE" render "${SCENES[0]%:*}" --spp 1 --threads 1 -o "$TMP/k.exr" 2>&1 | sed -n 's/.*tracing with an //p')"
 echo
 echo "| scene | spp | Furnace Ms/s | scalar_rgb | llvm_ad_rgb | F / scalar | F / llvm | Mitsuba 64-spp relMSE | Furnace spp to reach it | llvm time / Furnace time to it |"
 echo "|---|---|---|---|---|---|---|---|---|---|"
 for entry in "${SCENES[@]}"; do
     scene="${entry%:*}"; spp="${entry##*:}"; name="$(basename "$scene" .xml)"
-    read -r W H < <(sed -n 's/.*"width" value="\([0-9]*\)".*/\1/p; s/.*"height" value="\([0-9]*\)".*/\1/p' "$scene" | head -2 | paste -sd' ')
+    W=$(grep -o '"width" value="[0-9]*"' "$scene" | head -1 | grep -o '[0-9]*"$' | tr -d '"')
+    H=$(grep -o '"height" value="[0-9]*"' "$scene" | head -1 | grep -o '[0-9]*"$' | tr -d '"')
     samples=$(( W * H * spp ))
     mitsuba_secs llvm_ad_rgb "$scene" "$spp" "$TMP/warm.exr" > /dev/null
     : > "$TMP/f"; : > "$TMP/s"; : > "$TMP/l"
@@ -67,13 +69,21 @@ for entry in "${SCENES[@]}"; do
     ref="$ROOT/tests/scenes/refs/$name.exr"
     m_err="-"; f_spp="-"; tte="-"
     if [ -f "$ref" ]; then
-        if [ "$spp" = 64 ] && [ -s "$TMP/s" ]; then cp "$TMP/s.exr" "$TMP/m64.exr"; else mitsuba_secs scalar_rgb "$scene" 64 "$TMP/m64.exr" > /dev/null; fi
-        [ -f "$TMP/m64.exr" ] && m_err=$(relmse "$TMP/m64.exr" "$ref")
+        : > "$TMP/me"
+        for seed in $(seq 0 $((SEEDS - 1))); do
+            rm -f "$TMP/m64.exr"
+            "$PY" "$ROOT/bench/peers/render.py" "$scene" --variant scalar_rgb --spp 64 --seed "$seed" \
+                --threads "$THREADS" --out "$TMP/m64.exr" > /dev/null 2>&1 || true
+            [ -f "$TMP/m64.exr" ] && relmse "$TMP/m64.exr" "$ref" >> "$TMP/me"
+        done
+        [ -s "$TMP/me" ] && m_err=$(median < "$TMP/me")
         if [ "$m_err" != "-" ]; then
             prev_s=""; prev_e=""
             for s in 8 12 16 24 32 48 64 96 128; do
-                furnace_secs "$scene" "$s" "$TMP/ladder.exr" > /dev/null
-                e=$(relmse "$TMP/ladder.exr" "$ref")
+                e=$(for seed in $(seq 0 $((SEEDS - 1))); do
+                    "$FURNACE" render "$scene" --spp "$s" --seed "$seed" --threads "$THREADS" -o "$TMP/ladder.exr" > /dev/null 2>&1
+                    relmse "$TMP/ladder.exr" "$ref"
+                done | median)
                 if awk -v e="$e" -v m="$m_err" 'BEGIN {exit !(e <= m)}'; then
                     f_spp=$(awk -v s1="$prev_s" -v e1="$prev_e" -v s2="$s" -v e2="$e" -v m="$m_err" \
                         'BEGIN { if (s1 == "" || e1 <= e2) {printf "%.0f", s2; exit}
