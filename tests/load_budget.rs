@@ -173,6 +173,16 @@ fn scenes(dir: &Path) -> Vec<(&'static str, PathBuf)> {
                 |d| exr(&d.join("e.exr"), 512, 256),
             ),
         ),
+        (
+            // Short maps get more rows of cells per texel row: their tables cost more a texel.
+            "short environment map",
+            scene(
+                dir,
+                "short-env",
+                r#"<emitter type="envmap"><string name="filename" value="s.exr"/></emitter>"#,
+                |d| exr(&d.join("s.exr"), 4096, 2),
+            ),
+        ),
         ("3000 spheres", scene(dir, "spheres", &spheres, |_| {})),
     ]
 }

@@ -105,10 +105,11 @@ impl RenderPlan {
             lights,
             light_sampling,
             mis,
-            mis_compensation: scene
-                .lights
-                .iter()
-                .any(|l| matches!(l, crate::light::Light::Envmap(e) if e.compensated())),
+            mis_compensation: mis
+                && scene
+                    .lights
+                    .iter()
+                    .any(|l| matches!(l, crate::light::Light::Envmap(e) if e.compensated())),
             escaped_rays_lookup: !scene.infinite_lights.is_empty(),
             bsdfs,
             textures,

@@ -36,7 +36,7 @@ use std::sync::Arc;
 
 use glam::{Mat3, Vec2, Vec3};
 
-use crate::math::{luminance, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
+use crate::math::{square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
 use crate::texture::{Bitmap, FilterType};
 
 /// The largest f64 below 1: where a rescaled sample number must stay.
@@ -75,18 +75,24 @@ impl EnvMap {
         compensate: bool,
     ) -> EnvMap {
         let (w, h) = (bitmap.width, bitmap.height);
-        let lum: Vec<f32> = bitmap.texels.iter().map(|t| (luminance(*t) * scale).max(0.0)).collect();
-        // The map's luminance integral, from the texels' exact solid angles.
+        // Luminance in f64 (finite texels times a large scale may overflow f32), and the map's
+        // integral from the texels' exact solid angles.
+        let texel_lum = |t: &Rgb| {
+            ((0.2126 * t.x as f64 + 0.7152 * t.y as f64 + 0.0722 * t.z as f64) * scale as f64).max(0.0)
+        };
+        let max = bitmap.texels.iter().map(texel_lum).fold(0.0, f64::max);
         let integral: f64 = (0..h)
             .map(|j| {
                 let (t0, t1) = (PI64 * j as f64 / h as f64, PI64 * (j + 1) as f64 / h as f64);
-                let row: f64 = lum[j * w..(j + 1) * w].iter().map(|&l| l as f64).sum();
+                let row: f64 = bitmap.texels[j * w..(j + 1) * w].iter().map(texel_lum).sum();
                 row * (t0.cos() - t1.cos()) * 2.0 * PI64 / w as f64
             })
             .sum();
-        // Cell rows per texel row: two (so that texel centres are vertices), more for maps so
-        // short that sin(theta) needs them.
-        let r = 2 * (16 / h).max(1).next_power_of_two();
+        // The tables hold luminance over the brightest texel's, in [0, 1]: their f32 sums
+        // (at most 4 per texel) cannot overflow. The density does not depend on the unit.
+        let unit = if max > 0.0 && max.is_finite() { 1.0 / max } else { 0.0 };
+        let lum: Vec<f32> = bitmap.texels.iter().map(|t| (texel_lum(t) * unit) as f32).collect();
+        let r = rows_per_texel(h);
         let (nu, nv) = (w, r * h);
         let u_shift = if filter == FilterType::Nearest { 0.0 } else { 0.5 / w as f32 };
         // Luminance at the grid's vertices (bilinear lookup: exact, as the lookup is linear in
@@ -130,9 +136,9 @@ impl EnvMap {
         };
         // What the grid's total would be without compensation (its integral over du dv, times
         // nu nv).
-        let full_total = integral * (nu * nv) as f64 / (2.0 * PI64 * PI64);
+        let full_total = integral * unit * (nu * nv) as f64 / (2.0 * PI64 * PI64);
         let compensated = (compensate && integral > 0.0)
-            .then(|| build((integral / (4.0 * PI64)) as f32))
+            .then(|| build((integral / (4.0 * PI64) * unit) as f32))
             // Nothing left but rounding (a constant map): sample the map as it is.
             .filter(|c| c.total > 1e-6 * full_total);
         let (warp, compensated) = match compensated {
@@ -151,6 +157,29 @@ impl EnvMap {
             compensated,
             uniform: false,
         }
+    }
+
+    /// Bytes the sampling tables of a `w` x `h` map hold while they are built (at their
+    /// peak) and keep, for the scene's memory budget.
+    pub fn table_bytes(w: usize, h: usize, filter: FilterType) -> (u64, u64) {
+        let (w, h) = (w as u64, h as u64);
+        let (nu, nv) = (w, rows_per_texel(h as usize) as u64 * h);
+        let mut levels = 0;
+        let (mut lw, mut lh) = (nu.div_ceil(2), nv.div_ceil(2));
+        loop {
+            levels += 4 * (lw + (lw & 1)) * (lh + (lh & 1));
+            if lw == 1 && lh == 1 {
+                break;
+            }
+            (lw, lh) = (lw.div_ceil(2), lh.div_ceil(2));
+        }
+        let (grid, corners) = match filter {
+            FilterType::Nearest => (4 * w * h, 4 * w * h + 4 * (nv + 1)),
+            _ => (4 * (nu + 1) * (nv + 1), 4 * (nu + 1) * (nv + 1)),
+        };
+        // Texel luminance (while the grid is made), the grid, the corners being built, and
+        // the levels (two of them twice while a level is made).
+        (4 * w * h + grid + corners + levels + levels / 2, corners + levels)
     }
 
     /// The same map with MIS compensation on or off.
@@ -179,7 +208,9 @@ impl EnvMap {
         if u < 0.0 {
             u += 1.0;
         }
-        (Vec2::new(u, crate::math::safe_acos(l.y) / PI), (l.x * l.x + l.z * l.z).sqrt())
+        // theta by atan2, not acos: acos(l.y) rounds to 0 within 2.4e-4 rad of the poles.
+        let sin_t = (l.x * l.x + l.z * l.z).sqrt();
+        (Vec2::new(u, sin_t.atan2(l.y) / PI), sin_t)
     }
 
     /// The lookup at (u, v), scaled.
@@ -392,6 +423,9 @@ impl Warp {
         let c = self.corners(x, y).map(f64::from);
         let fy = sample_linear(uy, c[0] + c[1], c[2] + c[3]);
         let fx = sample_linear(ux, c[0] + (c[2] - c[0]) * fy, c[1] + (c[3] - c[1]) * fy);
+        if !(fx.is_finite() && fy.is_finite()) {
+            return None;
+        }
         Some((in_cell(x, fx, self.nu), in_cell(y, fy, self.nv)))
     }
 
@@ -411,15 +445,26 @@ impl Warp {
     }
 }
 
+/// Rows of cells per texel row: two (so that texel centres are vertices), more for maps so
+/// short that sin(theta) needs them (32 in all at least), a power of two (so that nearest
+/// lookup and the grid agree on rows in f32).
+fn rows_per_texel(h: usize) -> usize {
+    2 * (16 / h.max(1)).max(1).next_power_of_two()
+}
+
 /// (c + f) / n in f32, kept in cell c of n (rounding could carry it into the next cell, which
 /// with nearest lookup may be a black texel).
 fn in_cell(c: usize, f: f64, n: usize) -> f32 {
-    let mut x = ((c as f64 + f) / n as f64) as f32;
-    while x > 0.0 && (x * n as f32) as usize > c {
-        x = f32::from_bits(x.to_bits() - 1);
-    }
-    while ((x * n as f32) as usize) < c {
-        x = f32::from_bits(x.to_bits() + 1);
+    let mut x = ((c as f64 + f.clamp(0.0, 1.0)) / n as f64) as f32;
+    // One or two steps of one ulp; more only past f32's resolution (n > 2^24).
+    for _ in 0..4 {
+        if x > 0.0 && (x * n as f32) as usize > c {
+            x = f32::from_bits(x.to_bits() - 1);
+        } else if ((x * n as f32) as usize) < c {
+            x = f32::from_bits(x.to_bits() + 1);
+        } else {
+            break;
+        }
     }
     x
 }
@@ -436,6 +481,9 @@ fn choose(v: [f32; 4], ux: &mut f64, uy: &mut f64) -> Option<(usize, usize)> {
         return None;
     }
     let pl = left / sum;
+    if !pl.is_finite() {
+        return None;
+    }
     let dx = if *ux < pl {
         *ux /= pl;
         0
@@ -478,7 +526,7 @@ fn sample_linear(u: f64, a: f64, b: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::math::Frame;
+    use crate::math::{luminance, Frame};
     use crate::testing::{chi2_test, Grid, Pcg};
 
     /// A sky gradient with a square sun of `size` x `size` texels at `sun` (its corner).
@@ -700,6 +748,61 @@ mod tests {
                 assert!(!env.compensated());
                 chi2_of(&env, Grid::uniform(12, 12), &name("constant"));
             }
+        }
+    }
+
+    /// Texels near f32's largest value, and a large scale on large texels: the tables are
+    /// built relative to the brightest texel, so nothing overflows; samples stay finite and
+    /// follow the pdf.
+    #[test]
+    fn huge_radiance_neither_overflows_nor_hangs() {
+        let mut half = Bitmap { width: 32, height: 16, texels: vec![Rgb::splat(1.0); 512] };
+        for j in 0..16 {
+            half.texels[j * 32..j * 32 + 16].fill(Rgb::splat(1e37));
+        }
+        let mut one = Bitmap { width: 32, height: 8, texels: vec![Rgb::splat(0.5); 256] };
+        one.texels[3 * 32 + 7] = Rgb::splat(1.5e38);
+        let mut scaled = Bitmap { width: 64, height: 8, texels: vec![Rgb::splat(0.5); 512] };
+        scaled.texels[2 * 64 + 40] = Rgb::splat(1e30);
+        for (bmp, scale) in [(half, 1.0), (one, 1.0), (scaled, 1e9)] {
+            for filter in [FilterType::Nearest, FilterType::Bilinear] {
+                let (w, h) = (bmp.width, bmp.height);
+                let env = EnvMap::new(Arc::new(bmp.clone()), scale, Mat3::IDENTITY, filter, true);
+                assert!(env.luminance_integral().is_finite() && env.luminance_integral() > 0.0);
+                let mut rng = Pcg::new(5);
+                for _ in 0..2000 {
+                    let (d, _, pdf) = env.sample(rng.next_2d()).expect("a sample");
+                    assert!(d.is_finite() && pdf.is_finite() && pdf > 0.0, "{w}x{h} {filter:?}: {d} {pdf}");
+                }
+                chi2_uv(&env, w, h, &format!("{w}x{h} x{scale}, {filter:?}"));
+            }
+        }
+    }
+
+    /// Within 2.4e-4 rad of a pole, acos(y) rounds to 0 in f32; the pdf takes theta by atan2
+    /// and agrees with the density the sample came from.
+    #[test]
+    fn the_pdf_holds_at_the_poles() {
+        let mut bmp = Bitmap { width: 64, height: 32, texels: vec![Rgb::splat(0.1); 64 * 32] };
+        bmp.texels[..64].fill(Rgb::splat(100.0));
+        for filter in [FilterType::Nearest, FilterType::Bilinear] {
+            let env = EnvMap::new(Arc::new(bmp.clone()), 1.0, Mat3::IDENTITY, filter, true);
+            for theta in [1e-6f32, 1e-5, 1e-4, 1e-3] {
+                let d = Vec3::new(theta.sin() * 0.6, theta.cos(), theta.sin() * 0.8);
+                let pdf = env.pdf(d);
+                assert!(pdf > 0.0, "{filter:?}: theta {theta}: pdf {pdf}");
+            }
+            let mut rng = Pcg::new(2);
+            let mut near = 0;
+            for _ in 0..200_000 {
+                let (d, _, pdf) = env.sample(rng.next_2d()).expect("a sample");
+                if d.y > 0.999_999 {
+                    near += 1;
+                    let p2 = env.pdf(d);
+                    assert!((p2 / pdf - 1.0).abs() < 0.05, "{filter:?}: {d}: {pdf} vs {p2}");
+                }
+            }
+            assert!(near > 0);
         }
     }
 

@@ -56,10 +56,6 @@ const TEXEL_LOAD: u64 = 40;
 /// What a texel keeps: linear RGB, and the pyramid's levels when a filter reads them.
 const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
 const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
-/// What an environment map's sampling tables hold per texel at their peak while they are
-/// built: luminance (4 bytes), the grid's vertex luminance and its density (two cell rows
-/// per texel row, 8 bytes each) and the warp's block sums (under 3 bytes).
-const ENVMAP_TEXEL: u64 = 24;
 /// What the OBJ and curve loaders hold per byte of their file while parsing.
 const PARSE_PER_BYTE: u64 = 12;
 /// What building the BVH holds at its peak per primitive, and what it keeps.
@@ -1102,8 +1098,12 @@ impl Builder<'_> {
                 // Mitsuba's default is false; Furnace compensates unless the scene says not to.
                 let compensate = doc.boolean_or(i, "mis_compensation", true)?;
                 let bitmap = self
-                    .bitmap(&path, false, ENVMAP_TEXEL)
+                    .bitmap(&path, false, 0)
                     .map_err(|e| self.err(fpos, format!("cannot load envmap '{rel}': {e}")))?;
+                let (peak, kept) = EnvMap::table_bytes(bitmap.width, bitmap.height, filter);
+                self.budget
+                    .charge("the environment map's sampling tables", peak, kept)
+                    .map_err(|e| self.err(fpos, format!("envmap '{rel}': {e}")))?;
                 self.assets.push(path);
                 Light::Envmap(Arc::new(EnvMap::new(Arc::new(bitmap), scale, to_world, filter, compensate)))
             }
