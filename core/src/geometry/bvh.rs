@@ -584,11 +584,11 @@ impl Accel {
         let tmin = q.ray.tmin;
         let mut tmax = q.ray.tmax;
         let mut inline = [MaybeUninit::<(u32, f32)>::uninit(); INLINE_STACK];
-        let mut heap = Vec::new();
+        let mut heap;
         let stack: &mut [MaybeUninit<(u32, f32)>] = if self.stack_size <= INLINE_STACK {
             &mut inline
         } else {
-            heap.resize(self.stack_size, MaybeUninit::uninit());
+            heap = deep_stack(self.stack_size);
             &mut heap
         };
         let mut sp = 0;
@@ -664,6 +664,13 @@ impl Accel {
             }
         }
     }
+}
+
+/// A traversal stack for trees deeper than the inline one serves (out of the hot path).
+#[cold]
+#[inline(never)]
+fn deep_stack(size: usize) -> Vec<MaybeUninit<(u32, f32)>> {
+    vec![MaybeUninit::uninit(); size]
 }
 
 #[cfg(test)]
