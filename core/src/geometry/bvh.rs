@@ -339,51 +339,63 @@ struct Query<'a> {
     best: Option<(u32, Vec2)>,
 }
 
-impl Accel {
-    pub fn build(shapes: &[Shape]) -> Accel {
-        let count: usize = shapes.iter().map(|s| s.prim_count()).sum();
-        assert!(count <= MAX_PRIMS, "{count} primitives: one BVH holds at most {MAX_PRIMS}");
-        let mut prims = Vec::with_capacity(count);
-        let mut aabbs = Vec::with_capacity(count);
-        for (s, shape) in shapes.iter().enumerate() {
-            let kind = if matches!(shape.geometry, Geometry::Mesh(_)) { TRIANGLE } else { 0 };
-            for i in 0..shape.prim_count() {
-                let (lo, hi) = shape.prim_bounds(i);
-                prims.push(PrimRef { shape: s as u32 | kind, index: i as u32 });
-                aabbs.push(Aabb::new(Vec3A::from(lo), Vec3A::from(hi)));
-            }
-        }
-        let kernel = Kernel::detect();
-        if prims.is_empty() {
-            return Accel {
-                nodes: Vec::new(),
-                prims,
-                tris: Vec::new(),
-                stack_size: 0,
-                kernel,
-                curves: false,
-            };
-        }
-        // Past two million primitives (a quarter of a million fibres), obvhs' better builds
-        // cost more time than they save (docs/BENCHMARKS.md, "Fur at scale").
-        let mut params = if count > FAST_BUILD_ABOVE {
-            BvhBuildParams::very_fast_build()
-        } else {
-            BvhBuildParams::medium_build()
-        };
-        // Leaves of up to four primitives, collapsed where the SAH says a leaf is cheaper, with
-        // a box test costing twice a primitive's: on hair.xml, 1 renders 5% faster but holds
-        // twice the nodes (29 bytes a fibre segment against 16); 3 is 15% slower on cbox.
-        params.max_prims_per_leaf = LEAF_MAX;
-        params.collapse_traversal_cost = 2.0;
+/// Primitives per bottom-level build when a scene has more (see [`Accel::build`]): obvhs'
+/// scratch is held for this many at a time.
+pub const BATCH: usize = 1 << 18;
+
+/// The wide tree being built: its nodes (node 0 is the root) and its primitives in leaf order.
+struct Builder<'a> {
+    shapes: &'a [Shape],
+    nodes: Vec<Node>,
+    prims: Vec<PrimRef>,
+    tris: Vec<PackedTri>,
+}
+
+impl Builder<'_> {
+    /// Builds a tree over `refs` into node `slot` and appends their primitives in leaf order;
+    /// returns the tree's box and depth.
+    fn bottom(&mut self, refs: &[PrimRef], params: BvhBuildParams, slot: usize) -> (Aabb, usize) {
+        let shapes = self.shapes;
+        let aabbs: Vec<Aabb> = refs
+            .iter()
+            .map(|p| {
+                let (lo, hi) = shapes[(p.shape & !TRIANGLE) as usize].prim_bounds(p.index as usize);
+                Aabb::new(Vec3A::from(lo), Vec3A::from(hi))
+            })
+            .collect();
         let bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
         drop(aabbs);
+        let offset = self.prims.len() as u32;
+        let depth = self.collapse(&bvh2, slot, |leaf| {
+            debug_assert!((1..=LEAF_MAX).contains(&leaf.prim_count));
+            LEAF | (leaf.prim_count - 1) << FIRST_BITS | (offset + leaf.first_index)
+        });
+        for &k in &bvh2.primitive_indices {
+            let mut p = refs[k as usize];
+            if p.shape & TRIANGLE != 0 {
+                if let Geometry::Mesh(m) = &shapes[(p.shape & !TRIANGLE) as usize].geometry {
+                    self.tris.push(PackedTri { v: m.tri(p.index as usize), index: p.index });
+                    p.index = self.tris.len() as u32 - 1;
+                }
+            }
+            self.prims.push(p);
+        }
+        (*bvh2.nodes[0].aabb(), depth)
+    }
 
-        // Collapse: a node takes its binary node's two children, then opens the largest inner
-        // child (by surface area) until it has eight or only leaves.
-        let b2 = &bvh2.nodes;
-        let mut nodes = vec![EMPTY_NODE];
-        let mut todo = vec![(0usize, 0usize, 1usize)]; // (wide node, binary node, depth)
+    /// Collapses binary tree `b2` into wide nodes, its root into node `slot`: a node takes its
+    /// binary node's two children, then opens the largest inner child (by surface area) until
+    /// it has eight or only leaves. `leaf` gives a binary leaf's child reference. Returns the
+    /// depth.
+    fn collapse(
+        &mut self,
+        b2: &obvhs::bvh2::Bvh2,
+        slot: usize,
+        leaf: impl Fn(&obvhs::bvh2::node::Bvh2Node) -> u32,
+    ) -> usize {
+        let b2 = &b2.nodes;
+        let nodes = &mut self.nodes;
+        let mut todo = vec![(slot, 0usize, 1usize)]; // (wide node, binary node, depth)
         let mut depth = 1;
         while let Some((w, n, level)) = todo.pop() {
             depth = depth.max(level);
@@ -408,8 +420,7 @@ impl Accel {
             for (lane, &k) in kids.iter().enumerate() {
                 let node = &b2[k];
                 nodes[w].child[lane] = if node.is_leaf() {
-                    debug_assert!((1..=LEAF_MAX).contains(&node.prim_count));
-                    LEAF | (node.prim_count - 1) << FIRST_BITS | node.first_index
+                    leaf(node)
                 } else {
                     nodes.push(EMPTY_NODE);
                     todo.push((nodes.len() - 1, k, level + 1));
@@ -417,23 +428,108 @@ impl Accel {
                 };
             }
         }
+        depth
+    }
+}
 
-        let mut tris = Vec::new();
-        let prims: Vec<PrimRef> = bvh2
-            .primitive_indices
-            .iter()
-            .map(|&k| {
-                let mut p = prims[k as usize];
-                if p.shape & TRIANGLE != 0 {
-                    if let Geometry::Mesh(m) = &shapes[(p.shape & !TRIANGLE) as usize].geometry {
-                        tris.push(PackedTri { v: m.tri(p.index as usize), index: p.index });
-                        p.index = tris.len() as u32 - 1;
-                    }
-                }
-                p
+/// `refs` (all `count` primitives) sorted by the Morton code of their box centres (10 bits an
+/// axis): neighbours in the order are neighbours in space.
+fn morton_order(shapes: &[Shape], refs: impl Iterator<Item = PrimRef> + Clone, count: usize) -> Vec<PrimRef> {
+    use rayon::slice::ParallelSliceMut;
+    let centre = |p: &PrimRef| {
+        let (lo, hi) = shapes[(p.shape & !TRIANGLE) as usize].prim_bounds(p.index as usize);
+        (lo + hi) * 0.5
+    };
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for p in refs.clone() {
+        let c = centre(&p);
+        (lo, hi) = (lo.min(c), hi.max(c));
+    }
+    let scale = 1023.0 / (hi - lo).max(Vec3::splat(f32::MIN_POSITIVE));
+    let spread = |v: u32| {
+        let mut x = v & 0x3ff;
+        x = (x | x << 16) & 0x030000ff;
+        x = (x | x << 8) & 0x0300f00f;
+        x = (x | x << 4) & 0x030c30c3;
+        (x | x << 2) & 0x09249249
+    };
+    let mut keyed: Vec<(u32, PrimRef)> = Vec::with_capacity(count);
+    keyed.extend(refs.map(|p| {
+        let q = ((centre(&p) - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
+        (spread(q.x as u32) << 2 | spread(q.y as u32) << 1 | spread(q.z as u32), p)
+    }));
+    keyed.par_sort_unstable_by_key(|k| k.0);
+    keyed.into_iter().map(|k| k.1).collect()
+}
+
+impl Accel {
+    pub fn build(shapes: &[Shape]) -> Accel {
+        Accel::build_in_batches(shapes, BATCH)
+    }
+
+    /// [`Accel::build`] with bottom-level trees of at most `batch` primitives.
+    fn build_in_batches(shapes: &[Shape], batch: usize) -> Accel {
+        let count: usize = shapes.iter().map(|s| s.prim_count()).sum();
+        assert!(count <= MAX_PRIMS, "{count} primitives: one BVH holds at most {MAX_PRIMS}");
+        let kernel = Kernel::detect();
+        let curves = shapes.iter().any(|s| matches!(s.geometry, Geometry::Curves(_)));
+        let refs = || {
+            shapes.iter().enumerate().flat_map(|(s, shape)| {
+                let kind = if matches!(shape.geometry, Geometry::Mesh(_)) { TRIANGLE } else { 0 };
+                (0..shape.prim_count() as u32).map(move |index| PrimRef { shape: s as u32 | kind, index })
             })
-            .collect();
-        drop(bvh2);
+        };
+        let mut b =
+            Builder { shapes, nodes: vec![EMPTY_NODE], prims: Vec::with_capacity(count), tris: Vec::new() };
+        if count == 0 {
+            return Accel {
+                nodes: Vec::new(),
+                prims: Vec::new(),
+                tris: Vec::new(),
+                stack_size: 0,
+                kernel,
+                curves,
+            };
+        }
+        // Past two million primitives (a quarter of a million fibres), obvhs' better builds
+        // cost more time than they save (docs/BENCHMARKS.md, "Fur at scale").
+        let mut params = if count > FAST_BUILD_ABOVE {
+            BvhBuildParams::very_fast_build()
+        } else {
+            BvhBuildParams::medium_build()
+        };
+        // Leaves of up to four primitives, collapsed where the SAH says a leaf is cheaper, with
+        // a box test costing twice a primitive's: on hair.xml, 1 renders 5% faster but holds
+        // twice the nodes (29 bytes a fibre segment against 16); 3 is 15% slower on cbox.
+        params.max_prims_per_leaf = LEAF_MAX;
+        params.collapse_traversal_cost = 2.0;
+        let depth = if count <= batch {
+            let all: Vec<PrimRef> = refs().collect();
+            b.bottom(&all, params, 0).1
+        } else {
+            // Bounded batches: primitives in Morton order of their centres, a tree per BATCH
+            // of them, and a tree over the batches. obvhs' scratch (about 300 bytes a
+            // primitive) is then held for one batch at a time.
+            let order = morton_order(shapes, refs(), count);
+            let mut roots = Vec::with_capacity(count.div_ceil(batch));
+            let mut depth = 0;
+            for refs in order.chunks(batch) {
+                b.nodes.push(EMPTY_NODE);
+                let slot = b.nodes.len() - 1;
+                let (root_box, d) = b.bottom(refs, params, slot);
+                roots.push((slot as u32, root_box));
+                depth = depth.max(d);
+            }
+            drop(order);
+            let boxes: Vec<Aabb> = roots.iter().map(|r| r.1).collect();
+            let mut top_params = BvhBuildParams::medium_build();
+            top_params.max_prims_per_leaf = 1;
+            let top = build_bvh2(&boxes, top_params, &mut Default::default());
+            let top_depth = b
+                .collapse(&top, 0, |leaf| roots[top.primitive_indices[leaf.first_index as usize] as usize].0);
+            top_depth + depth
+        };
+        let Builder { mut nodes, prims, mut tris, .. } = b;
         tris.shrink_to_fit();
         nodes.shrink_to_fit();
         tracing::debug!(
@@ -445,7 +541,6 @@ impl Accel {
                 + std::mem::size_of_val(tris.as_slice()),
             "BVH built"
         );
-        let curves = shapes.iter().any(|s| matches!(s.geometry, Geometry::Curves(_)));
         Accel { nodes, prims, tris, stack_size: (WIDTH - 1) * depth + 1, kernel, curves }
     }
 
@@ -715,11 +810,14 @@ mod tests {
     /// Every kernel finds exactly what testing every primitive finds: the same closest hit
     /// (distance and triangle) and the same occlusion answer, for rays from inside and outside
     /// the soup, axis-aligned ones included.
+    /// Every kernel finds what brute force finds, in one tree and in trees built in batches
+    /// (of 300 and of 7 primitives: a tree over 286 batch trees).
     #[test]
     fn traversal_matches_brute_force_for_every_kernel() {
-        for (n, seed) in [(1, 1), (5, 2), (2000, 3)] {
+        for (n, seed, batch) in [(1, 1, BATCH), (5, 2, BATCH), (2000, 3, BATCH), (2000, 4, 300), (2000, 5, 7)]
+        {
             let shapes = soup(n, seed);
-            let mut accel = Accel::build(&shapes);
+            let mut accel = Accel::build_in_batches(&shapes, batch);
             let Geometry::Mesh(mesh) = &shapes[0].geometry else { unreachable!() };
             let mut s = seed * 77 + 1;
             for ray_index in 0..3000 {
@@ -745,7 +843,11 @@ mod tests {
                 for kernel in Kernel::available() {
                     accel.set_kernel(kernel);
                     let hit = accel.intersect(&shapes, &ray).map(|it| (it.t, it.prim as usize));
-                    assert_eq!(hit.map(|h| h.0), brute.map(|b| b.0), "{kernel:?}, n {n}, ray {ray_index}");
+                    assert_eq!(
+                        hit.map(|h| h.0),
+                        brute.map(|b| b.0),
+                        "{kernel:?}, n {n}, batch {batch}, ray {ray_index}"
+                    );
                     assert_eq!(accel.occluded(&shapes, &ray), brute.is_some(), "{kernel:?}, ray {ray_index}");
                 }
             }

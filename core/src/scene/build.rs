@@ -58,8 +58,11 @@ const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
 const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
 /// What the OBJ and curve loaders hold per byte of their file while parsing.
 const PARSE_PER_BYTE: u64 = 12;
-/// What building the BVH holds at its peak per primitive, and what it keeps.
+/// What building the BVH holds at its peak per primitive of one batch (obvhs' scratch), what
+/// it holds per primitive of the scene on top of what it keeps (the Morton order of a batched
+/// build), and what it keeps.
 const BVH_BUILD_PER_PRIM: u64 = 384;
+const BVH_ORDER_PER_PRIM: u64 = 20;
 const BVH_KEPT_PER_PRIM: u64 = 64;
 
 /// A scene's load within its [`LoadLimits`](super::LoadLimits): the memory counted so far and
@@ -191,7 +194,10 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
     b.budget
         .charge(
             &format!("the BVH of {prims} primitives"),
-            prims.saturating_mul(BVH_BUILD_PER_PRIM),
+            prims
+                .min(crate::geometry::bvh::BATCH as u64)
+                .saturating_mul(BVH_BUILD_PER_PRIM)
+                .saturating_add(prims.saturating_mul(BVH_KEPT_PER_PRIM + BVH_ORDER_PER_PRIM)),
             prims.saturating_mul(BVH_KEPT_PER_PRIM),
         )
         .map_err(|e| SceneError::file(&doc.file, e))?;
