@@ -320,8 +320,11 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
         if head.status().is_success() {
             continue;
         }
-        let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-        Api::check(api.req(reqwest::Method::PUT, &format!("/v1/files/{hash}")).body(bytes).send()?)
+        // Streamed from the file, never whole in memory.
+        let file = std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let len = file.metadata().with_context(|| format!("cannot read {}", path.display()))?.len();
+        let body = reqwest::blocking::Body::sized(file, len);
+        Api::check(api.req(reqwest::Method::PUT, &format!("/v1/files/{hash}")).body(body).send()?)
             .with_context(|| format!("uploading {rel}"))?;
     }
     let settings = JobSettings {

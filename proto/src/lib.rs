@@ -151,11 +151,11 @@ impl Bundle {
                 .map_err(|_| format!("{} is outside the scene's folder {}", p.display(), dir.display()))?
                 .to_string_lossy()
                 .replace('\\', "/");
-            let bytes = std::fs::read(&p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
+            let hash = hash_file(&p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
             if i == 0 {
                 bundle.scene = rel.clone();
             }
-            bundle.files.insert(rel.clone(), blake3::hash(&bytes).to_hex().to_string());
+            bundle.files.insert(rel.clone(), hash);
             local.push((rel, p));
         }
         Ok((bundle, local))
@@ -533,4 +533,11 @@ mod tests {
             MapDeserializer::new(std::iter::empty());
         JobSettings::deserialize(empty).expect("defaults fill every field")
     }
+}
+
+/// BLAKE3 of a file, read in pieces (never whole in memory), as hex.
+pub fn hash_file(path: &std::path::Path) -> std::io::Result<String> {
+    let mut h = blake3::Hasher::new();
+    h.update_reader(std::fs::File::open(path)?)?;
+    Ok(h.finalize().to_hex().to_string())
 }

@@ -303,6 +303,49 @@ impl HttpLink {
         r.bytes().map(|b| b.to_vec()).map_err(|e| e.to_string())
     }
 
+    /// Streams `GET path` into the cache's `file` while hashing it (never whole in memory);
+    /// stored only if it hashes to `hash`. `name` is the file's path in the bundle.
+    fn download(
+        &self,
+        path: &str,
+        file: &Path,
+        hash: &str,
+        name: &str,
+        cache_err: &dyn Fn(&Path, std::io::Error) -> String,
+    ) -> Result<(), String> {
+        use std::io::{Read, Write};
+        let mut r = self.auth(self.http.get(self.url(path))).send().map_err(|e| e.to_string())?;
+        if !r.status().is_success() {
+            return Err(error_text(r));
+        }
+        let tmp = temp_beside(file).map_err(|e| cache_err(file, e))?;
+        let mut out = std::fs::File::create(&tmp).map_err(|e| cache_err(&tmp, e))?;
+        let mut hasher = blake3::Hasher::new();
+        let mut buf = vec![0u8; 1 << 16];
+        let copied = loop {
+            let n = match r.read(&mut buf) {
+                Ok(0) => break Ok(()),
+                Ok(n) => n,
+                Err(e) => break Err(e.to_string()),
+            };
+            hasher.update(&buf[..n]);
+            if let Err(e) = out.write_all(&buf[..n]) {
+                break Err(cache_err(&tmp, e));
+            }
+        };
+        drop(out);
+        let done = copied.and_then(|()| {
+            if hasher.finalize().to_hex().as_str() != hash {
+                return Err(format!("file {name} does not hash to {hash}"));
+            }
+            std::fs::rename(&tmp, file).map_err(|e| cache_err(file, e))
+        });
+        if done.is_err() {
+            std::fs::remove_file(&tmp).ok();
+        }
+        done
+    }
+
     /// Fetches the bundle's files (those not cached yet) and loads its scene.
     fn load(&self, bundle_hash: &str) -> Result<Scene, String> {
         if !furnace_proto::is_hash(bundle_hash) {
@@ -336,19 +379,11 @@ impl HttpLink {
         .map_err(|e| cache_err(&dir, e))?;
         for (path, hash) in &bundle.files {
             let file = cache.join("files").join(hash);
-            let bytes = match cached(&file, hash) {
-                Some(bytes) => bytes,
-                None => {
-                    let bytes = self.get(&format!("/v1/files/{hash}"))?;
-                    if blake3::hash(&bytes).to_hex().as_str() != hash {
-                        return Err(format!("file {path} does not hash to {hash}"));
-                    }
-                    write_file(&file, &bytes).map_err(|e| cache_err(&file, e))?;
-                    bytes
-                }
-            };
+            if !cached(&file, hash) {
+                self.download(&format!("/v1/files/{hash}"), &file, hash, path, &cache_err)?;
+            }
             let dst = dir.join(path);
-            write_file(&dst, &bytes).map_err(|e| cache_err(&dst, e))?;
+            link_or_copy(&file, &dst).map_err(|e| cache_err(&dst, e))?;
         }
         let limits = furnace_core::LoadLimits { max_bytes: self.max_scene_bytes, ..Default::default() };
         // Errors name files by their paths in the bundle.
@@ -427,12 +462,19 @@ impl Link for HttpLink {
 }
 
 /// A cached file's bytes, if it is a plain file (not a link) that hashes to `hash`.
-fn cached(file: &Path, hash: &str) -> Option<Vec<u8>> {
-    if !std::fs::symlink_metadata(file).ok()?.is_file() {
-        return None;
+/// Whether the cache holds `file` as a plain file that hashes to `hash` (read in pieces).
+fn cached(file: &Path, hash: &str) -> bool {
+    std::fs::symlink_metadata(file).is_ok_and(|m| m.is_file())
+        && furnace_proto::hash_file(file).is_ok_and(|h| h == hash)
+}
+
+/// Puts the cached `file` at `dst` in a bundle's folder: a hard link (no copy of a large
+/// file), or a copy where links cannot be made.
+fn link_or_copy(file: &Path, dst: &Path) -> std::io::Result<()> {
+    if let Some(p) = dst.parent() {
+        std::fs::create_dir_all(p)?;
     }
-    let bytes = std::fs::read(file).ok()?;
-    (blake3::hash(&bytes).to_hex().as_str() == hash).then_some(bytes)
+    std::fs::hard_link(file, dst).or_else(|_| std::fs::copy(file, dst).map(|_| ()))
 }
 
 /// The worker's default cache: `$XDG_CACHE_HOME/furnace`, else `~/.cache/furnace`, else
@@ -513,14 +555,19 @@ fn private_dir(dir: &Path) -> std::io::Result<(PathBuf, std::fs::File)> {
 }
 
 fn write_file(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let tmp = temp_beside(path)?;
+    std::fs::write(&tmp, bytes)?;
+    std::fs::rename(tmp, path)
+}
+
+/// A fresh temporary name beside `path` (its folder made), to write and then rename.
+fn temp_beside(path: &Path) -> std::io::Result<PathBuf> {
     if let Some(p) = path.parent() {
         std::fs::create_dir_all(p)?;
     }
     static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let tmp = path.with_extension(format!("tmp{}.{n}", std::process::id()));
-    std::fs::write(&tmp, bytes)?;
-    std::fs::rename(tmp, path)
+    Ok(path.with_extension(format!("tmp{}.{n}", std::process::id())))
 }
 
 #[cfg(test)]
@@ -552,6 +599,48 @@ mod cache_tests {
             assert_eq!(std::fs::canonicalize(&dir).unwrap(), std::fs::canonicalize(&inside).unwrap());
             assert_eq!(std::fs::metadata(&inside).unwrap().mode() & 0o777, 0o700);
         }
+        std::fs::remove_dir_all(&root).ok();
+    }
+
+    /// Downloads stream into the cache while hashed: a body that hashes right is stored
+    /// whole; one that does not is refused and leaves nothing, temporary or not.
+    #[test]
+    fn downloads_are_stored_only_when_they_hash_right() {
+        use std::io::{Read, Write};
+        let root = std::env::temp_dir().join(format!("furnace-cache-dl-{}", std::process::id()));
+        std::fs::remove_dir_all(&root).ok();
+        let body: Vec<u8> = (0..300_000u32).map(|i| (i * 7 % 251) as u8).collect();
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        let served = body.clone();
+        std::thread::spawn(move || {
+            for stream in listener.incoming().take(2) {
+                let mut s = stream.unwrap();
+                let mut head = [0u8; 1024];
+                let _ = s.read(&mut head);
+                let _ = write!(
+                    s,
+                    "HTTP/1.1 200 OK\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+                    served.len()
+                );
+                let _ = s.write_all(&served);
+            }
+        });
+        let link = HttpLink::new(&url, None, root.join("cache")).unwrap();
+        let dir = link.cache_dir().unwrap();
+        let err = |p: &Path, e: std::io::Error| format!("{}: {e}", p.display());
+        let good = blake3::hash(&body).to_hex().to_string();
+        let file = dir.join("files").join(&good);
+        link.download("/v1/files/x", &file, &good, "fur.txt", &err).unwrap();
+        assert_eq!(std::fs::read(&file).unwrap(), body);
+        assert!(cached(&file, &good));
+        let wrong = "0".repeat(64);
+        let bad = dir.join("files").join(&wrong);
+        let e = link.download("/v1/files/y", &bad, &wrong, "fur.txt", &err).unwrap_err();
+        assert!(e.contains("fur.txt does not hash to"), "{e}");
+        let left: Vec<_> =
+            std::fs::read_dir(dir.join("files")).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(left, [std::ffi::OsString::from(&good)], "only the good file is kept");
         std::fs::remove_dir_all(&root).ok();
     }
 
