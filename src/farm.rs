@@ -312,7 +312,9 @@ impl Api {
 
 pub fn submit(a: SubmitArgs) -> Result<()> {
     let api = Api::new(&a.coordinator, a.token.clone())?;
-    let scene = Scene::load(&a.scene, &[])?;
+    // Loaded to check it and to find its files: no BVH (the workers build their own).
+    let limits = furnace_core::LoadLimits { accel: false, ..Default::default() };
+    let scene = Scene::load_with(&a.scene, &[], &limits)?;
     let (bundle, files) = Bundle::of_scene(&a.scene, &scene).map_err(anyhow::Error::msg)?;
     for (rel, path) in &files {
         let hash = &bundle.files[rel];
