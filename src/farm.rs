@@ -45,9 +45,13 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = furnace_coordinator::api::UNUSED_FILES.as_secs_f64() / 3600.0)]
     pub unused_file_hours: f64,
     /// Megabytes of request bodies received at once, all requests together; a request waits
-    /// for its share (up to half the request time limit, then 503). No body may be larger.
+    /// for its share (up to half the request time limit, then 503). No body held in memory
+    /// may be larger; file uploads stream to disk and hold at most 8 MB of it.
     #[arg(long, default_value_t = (furnace_coordinator::api::BODY_BUDGET >> 20) as u64)]
     pub body_budget_mb: u64,
+    /// Megabytes of the largest file a submission may upload (streamed to disk).
+    #[arg(long, default_value_t = furnace_coordinator::api::MAX_FILE >> 20)]
+    pub max_file_mb: u64,
     /// Minutes after which a paused job with no chunk in flight is set aside: its checkpoint
     /// stored and its memory released until it is resumed or cancelled.
     #[arg(long, default_value_t = 10.0)]
@@ -209,6 +213,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     coord.max_scene_bytes = a.max_scene_memory_mb.saturating_mul(1 << 20);
     let mut state = furnace_coordinator::AppState::new(Arc::new(Mutex::new(coord)), a.token.clone())
         .with_body_budget((a.body_budget_mb.min(1 << 30) << 20) as usize)
+        .with_max_file(a.max_file_mb.min(1 << 40) << 20)
         .with_max_connections(a.max_connections.clamp(1, u32::MAX as usize));
     state.header_timeout = Duration::from_secs_f64(a.header_timeout.clamp(0.1, 3600.0));
     state.request_timeout = Duration::from_secs_f64(a.request_timeout.clamp(0.1, 86400.0));

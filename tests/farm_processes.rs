@@ -259,7 +259,7 @@ fn idle_half_requests_time_out_and_the_coordinator_stays_reachable() {
 fn request_bodies_share_a_budget_and_files_stream_to_disk() {
     let dir = scratch("farmbudget");
     let data = dir.join("data");
-    let limits = ["--body-budget-mb", "1", "--request-timeout", "2"];
+    let limits = ["--body-budget-mb", "1", "--max-file-mb", "2", "--request-timeout", "2"];
     let (_c, url) = coordinator(&data, &limits, 0);
     let addr = url.strip_prefix("http://").unwrap().to_string();
     let http = reqwest::blocking::Client::builder().timeout(Duration::from_secs(10)).build().unwrap();
@@ -282,12 +282,21 @@ fn request_bodies_share_a_budget_and_files_stream_to_disk() {
     let mut answer = String::new();
     BufReader::new(&chunked).read_line(&mut answer).unwrap();
     assert!(answer.contains("411"), "{answer:?}");
-    // Larger than the budget: refused before a byte of it is read.
-    let (big, big_hash) = file(1_100_000, 1);
-    let r = put(big, &big_hash);
+    // A body held in memory larger than the budget: refused before a byte of it is read.
+    let r = http.post(format!("{url}/v1/jobs")).body(vec![b' '; 1_100_000]).send().unwrap();
     assert_eq!(r.status().as_u16(), 413);
     let e: serde_json::Value = r.json().unwrap();
     assert!(e["error"].as_str().unwrap().contains("over the limit of 1048576 bytes"), "{e}");
+    // A file larger than the budget streams to disk (issue 17: curve files of a gigabyte);
+    // one over --max-file-mb is refused before a byte of it is read.
+    let (big, big_hash) = file(1_100_000, 1);
+    assert_eq!(put(big.clone(), &big_hash).status().as_u16(), 201);
+    assert_eq!(get(&format!("{url}/v1/files/{big_hash}")), (200, big));
+    let (huge, huge_hash) = file(2_200_000, 3);
+    let r = put(huge, &huge_hash);
+    assert_eq!(r.status().as_u16(), 413);
+    let e: serde_json::Value = r.json().unwrap();
+    assert!(e["error"].as_str().unwrap().contains("over the limit of 2097152 bytes"), "{e}");
     // A slow client holds 900 KB of the budget: the next 300 KB upload waits its turn, for
     // half the request time limit, then is told to come back.
     let slow = std::net::TcpStream::connect(&addr).unwrap();
@@ -327,7 +336,11 @@ fn request_bodies_share_a_budget_and_files_stream_to_disk() {
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .collect();
-    assert_eq!(names, [mid_hash], "what the refused upload left");
+    let mut names = names;
+    names.sort();
+    let mut kept = [mid_hash, big_hash];
+    kept.sort();
+    assert_eq!(names, kept, "what the refused uploads left");
     drop(slow);
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -53,6 +53,8 @@ pub struct AppState {
     budget_bytes: usize,
     /// The largest body accepted: [`MAX_BODY`], or the budget if smaller.
     max_body: usize,
+    /// The largest file upload accepted ([`MAX_FILE`] unless set): it streams to disk.
+    max_file: u64,
     /// Event streams open at once (a quarter of the connection cap unless set): each holds
     /// a connection for as long as its job runs.
     event_streams: Arc<tokio::sync::Semaphore>,
@@ -94,6 +96,7 @@ impl AppState {
             unused_files: UNUSED_FILES,
             body_budget: Arc::new(tokio::sync::Semaphore::new(BODY_BUDGET / BUDGET_UNIT)),
             max_body: MAX_BODY,
+            max_file: MAX_FILE,
             budget_bytes: BODY_BUDGET,
             event_streams: Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS / 4)),
         }
@@ -106,6 +109,12 @@ impl AppState {
         self.body_budget = Arc::new(tokio::sync::Semaphore::new(bytes / BUDGET_UNIT));
         self.max_body = MAX_BODY.min(bytes);
         self.budget_bytes = bytes;
+        self
+    }
+
+    /// Sets the largest file upload accepted, in bytes.
+    pub fn with_max_file(mut self, bytes: u64) -> AppState {
+        self.max_file = bytes;
         self
     }
 
@@ -194,8 +203,16 @@ fn json_body<T: for<'de> Deserialize<'de>>(body: &Bytes, what: &str) -> Result<T
     })
 }
 
-/// Largest request body: scene files and partials.
+/// Largest request body held in memory: scene files and partials.
 pub const MAX_BODY: usize = 256 << 20;
+
+/// Largest file upload (`PUT /v1/files/{hash}` streams to disk, so it is not bounded by
+/// [`MAX_BODY`] nor held in the in-memory budget beyond [`STREAM_HOLD`]).
+pub const MAX_FILE: u64 = 64 << 30;
+
+/// What a streaming file upload holds of the in-memory body budget while it runs: about
+/// what its queue of chunks can hold.
+const STREAM_HOLD: usize = 8 << 20;
 
 /// The OpenAPI 3 description of every route below, served at `/v1/openapi.json`.
 pub const OPENAPI: &str = include_str!("openapi.json");
@@ -449,14 +466,15 @@ async fn body_budget(State(s): State<AppState>, req: Request, next: Next) -> Res
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
     let len = declared.unwrap_or(0);
-    if len > s.max_body as u64 {
-        return CoordError::TooLarge(format!(
-            "the body ({len} bytes) is over the limit of {} bytes",
-            s.max_body
-        ))
-        .into_response();
+    // A file upload streams to disk: its own limit, and only its queue held in the budget.
+    let streamed = req.method() == axum::http::Method::PUT && req.uri().path().starts_with("/v1/files/");
+    let limit = if streamed { s.max_file } else { s.max_body as u64 };
+    if len > limit {
+        return CoordError::TooLarge(format!("the body ({len} bytes) is over the limit of {limit} bytes"))
+            .into_response();
     }
-    let units = (len as usize).div_ceil(BUDGET_UNIT) as u32;
+    let held = if streamed { len.min(STREAM_HOLD as u64).min(s.budget_bytes as u64) } else { len };
+    let units = (held as usize).div_ceil(BUDGET_UNIT) as u32;
     if units == 0 {
         return next.run(req).await;
     }
@@ -522,9 +540,9 @@ async fn put_file(State(s): State<AppState>, Path(hash): Path<String>, body: axu
             }
         };
         got += chunk.len();
-        if got > s.max_body {
+        if got as u64 > s.max_file {
             failed =
-                Some(CoordError::TooLarge(format!("the body is over the limit of {} bytes", s.max_body)));
+                Some(CoordError::TooLarge(format!("the body is over the limit of {} bytes", s.max_file)));
             break;
         }
         if tx.send(chunk).await.is_err() {
