@@ -56,8 +56,11 @@ const TEXEL_LOAD: u64 = 40;
 /// What a texel keeps: linear RGB, and the pyramid's levels when a filter reads them.
 const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
 const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
-/// What the OBJ and curve loaders hold per byte of their file while parsing.
+/// What the OBJ loader holds per byte of its file while parsing.
 const PARSE_PER_BYTE: u64 = 12;
+/// What parsing a curve file holds per point (a line), and per curve, besides its text.
+const CURVE_POINT_PARSE: u64 = 32;
+const CURVE_PARSE: u64 = 96;
 /// What building the BVH holds at its peak per primitive of one batch (obvhs' scratch), what
 /// it holds per primitive of the scene on top of what it keeps (the Morton order of a batched
 /// build), and what it keeps.
@@ -964,15 +967,22 @@ impl Builder<'_> {
                     .ok_or_else(|| self.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
                 let fpos = doc.pos_of(i, "filename");
                 let path = doc.resolve_path(fpos, &rel)?;
-                let parse = file_size(&path).saturating_mul(PARSE_PER_BYTE);
+                // The text is read whole first; what parsing it holds then follows from its
+                // lines: each a point (16 bytes, up to twice that in a grown list), and each
+                // curve (at least `min` points) a list in two lists of lists (about 96 bytes).
+                let size = file_size(&path);
+                self.budget.charge(&format!("curve file '{rel}'"), size, 0).map_err(|e| self.err(fpos, e))?;
+                let text = std::fs::read_to_string(&path)
+                    .map_err(|e| self.err(fpos, format!("cannot read curve file '{rel}': {e}")))?;
+                let min = if bspline { 4 } else { 2 };
+                let lines = text.as_bytes().iter().filter(|&&c| c == b'\n').count() as u64 + 1;
+                let parse = size.saturating_add(lines.saturating_mul(CURVE_POINT_PARSE + CURVE_PARSE / min));
                 self.budget
                     .charge(&format!("curve file '{rel}'"), parse, 0)
                     .map_err(|e| self.err(fpos, e))?;
-                let text = std::fs::read_to_string(&path)
-                    .map_err(|e| self.err(fpos, format!("cannot read curve file '{rel}': {e}")))?;
-                let mut curves =
-                    crate::geometry::curves::parse_curve_file(&text, if bspline { 4 } else { 2 })
-                        .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+                let mut curves = crate::geometry::curves::parse_curve_file(&text, min as usize)
+                    .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+                drop(text);
                 // to_world moves the points, not the radii (as Mitsuba).
                 for c in &mut curves {
                     for (p, _) in c.iter_mut() {
@@ -980,12 +990,23 @@ impl Builder<'_> {
                     }
                 }
                 self.assets.push(path);
-                let points: usize = curves.iter().map(Vec::len).sum();
-                let segments = if bspline { points * BSPLINE_STEPS } else { points } as u64;
+                // A B-spline of n points has n - 3 spans of BSPLINE_STEPS segments; a polyline
+                // n - 1 segments.
+                let segments: u64 = curves
+                    .iter()
+                    .map(|c| if bspline { c.len().saturating_sub(3) * BSPLINE_STEPS } else { c.len().saturating_sub(1) } as u64)
+                    .sum();
                 let kept =
                     segments.saturating_mul(std::mem::size_of::<crate::geometry::curves::Segment>() as u64);
+                // Meanwhile the parsed points are still held, and the segments twice (made in
+                // parallel pieces, then joined).
+                let points = parse - size;
                 self.budget
-                    .charge(&format!("curve file '{rel}'"), kept, kept)
+                    .charge(
+                        &format!("curve file '{rel}'"),
+                        points.saturating_add(kept.saturating_mul(2)),
+                        kept,
+                    )
                     .map_err(|e| self.err(fpos, e))?;
                 if bspline {
                     let (c, err) = crate::geometry::curves::Curves::bspline(&curves, BSPLINE_STEPS);
