@@ -461,8 +461,8 @@ impl Link for HttpLink {
     }
 }
 
-/// A cached file's bytes, if it is a plain file (not a link) that hashes to `hash`.
-/// Whether the cache holds `file` as a plain file that hashes to `hash` (read in pieces).
+/// Whether the cache holds `file` as a plain file (not a link) that hashes to `hash` (read
+/// in pieces).
 fn cached(file: &Path, hash: &str) -> bool {
     std::fs::symlink_metadata(file).is_ok_and(|m| m.is_file())
         && furnace_proto::hash_file(file).is_ok_and(|h| h == hash)

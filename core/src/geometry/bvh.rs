@@ -458,7 +458,9 @@ fn morton_order(shapes: &[Shape], refs: impl Iterator<Item = PrimRef> + Clone, c
         let q = ((centre(&p) - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
         (spread(q.x as u32) << 2 | spread(q.y as u32) << 1 | spread(q.z as u32), p)
     }));
-    keyed.par_sort_unstable_by_key(|k| k.0);
+    // A total order (primitives of equal code by shape and index): the tree does not depend on
+    // how the sort shares its work.
+    keyed.par_sort_unstable_by_key(|k| (k.0, k.1.shape, k.1.index));
     keyed.into_iter().map(|k| k.1).collect()
 }
 
@@ -525,8 +527,10 @@ impl Accel {
             let mut top_params = BvhBuildParams::medium_build();
             top_params.max_prims_per_leaf = 1;
             let top = build_bvh2(&boxes, top_params, &mut Default::default());
-            let top_depth = b
-                .collapse(&top, 0, |leaf| roots[top.primitive_indices[leaf.first_index as usize] as usize].0);
+            let top_depth = b.collapse(&top, 0, |leaf| {
+                assert_eq!(leaf.prim_count, 1, "a top-level leaf holds one batch tree");
+                roots[top.primitive_indices[leaf.first_index as usize] as usize].0
+            });
             top_depth + depth
         };
         let Builder { mut nodes, prims, mut tris, .. } = b;
