@@ -422,15 +422,27 @@ struct Deadline(Instant);
 /// A request (body included) that takes longer than the limit is answered 408: a client
 /// trickling its body cannot hold a connection slot.
 async fn time_limit(State(s): State<AppState>, mut req: Request, next: Next) -> Response {
-    req.extensions_mut().insert(Deadline(Instant::now() + s.request_timeout));
-    match tokio::time::timeout(s.request_timeout, next.run(req)).await {
+    // A file upload also gets the time its declared length takes at MIN_UPLOAD_RATE.
+    let upload = (req.method() == axum::http::Method::PUT && req.uri().path().starts_with("/v1/files/"))
+        .then(|| {
+            req.headers()
+                .get(header::CONTENT_LENGTH)
+                .and_then(|v| v.to_str().ok())
+                .and_then(|v| v.parse::<u64>().ok())
+        })
+        .flatten()
+        .map_or(Duration::ZERO, |len| Duration::from_secs_f64(len.min(s.max_file) as f64 / MIN_UPLOAD_RATE));
+    let limit = s.request_timeout + upload;
+    req.extensions_mut().insert(Deadline(Instant::now() + limit));
+    match tokio::time::timeout(limit, next.run(req)).await {
         Ok(r) => r,
-        Err(_) => error(
-            StatusCode::REQUEST_TIMEOUT,
-            format!("the request took longer than {:?}", s.request_timeout),
-        ),
+        Err(_) => error(StatusCode::REQUEST_TIMEOUT, format!("the request took longer than {limit:?}")),
     }
 }
+
+/// Bytes a second a file upload must keep up on average: on top of the request time limit,
+/// an upload gets the time its length takes at this rate.
+const MIN_UPLOAD_RATE: f64 = 8.0 * 1024.0 * 1024.0;
 
 async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
     if let Some(token) = &s.token {
