@@ -14,6 +14,7 @@ use furnace_proto::{JobSettings, JobState};
 use furnace_worker::WorkerConfig;
 
 mod farm;
+mod generate;
 mod plot;
 mod report;
 
@@ -42,6 +43,8 @@ enum Cmd {
     Report(report::ReportArgs),
     /// Health check: a URL answers 2xx, or a worker's health file is fresh.
     Probe(farm::ProbeArgs),
+    /// Write a scene of the seed's class (furry creature, props, sun/sky, thin lens) of any size.
+    Generate(generate::GenerateArgs),
 }
 
 #[derive(Args)]
@@ -114,6 +117,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Submit(a) => farm::submit(a),
         Cmd::Status(a) => farm::status(a),
         Cmd::Probe(a) => farm::probe(a),
+        Cmd::Generate(a) => generate::generate(a),
         Cmd::Report(a) => {
             let defines = parse_defines(&a.define)?;
             report::report(a, &defines)
