@@ -62,6 +62,9 @@ pub fn generate(a: GenerateArgs) -> Result<()> {
     if a.body_triangles < 200 {
         bail!("--body-triangles must be at least 200");
     }
+    if a.fibres == 0 {
+        bail!("--fibres must be at least 1 (a curve file needs a curve)");
+    }
     if a.fibres.saturating_mul(8) > furnace_core::geometry::bvh::MAX_PRIMS as u64 {
         bail!(
             "--fibres {}: more than a BVH holds ({} primitives)",
