@@ -229,7 +229,7 @@ const SCENE: &str = r#"<?xml version="1.0" encoding="utf-8"?>
     <shape type="ply"><string name="filename" value="body.ply"/>
         <bsdf type="diffuse"><rgb name="reflectance" value="0.45, 0.3, 0.18"/></bsdf></shape>
     <shape type="bsplinecurve"><string name="filename" value="fur.txt"/>
-        <bsdf type="hair"><float name="eumelanin" value="0.15"/><float name="pheomelanin" value="0.5"/></bsdf></shape>
+        <bsdf type="hair"><float name="eumelanin" value="0.05"/><float name="pheomelanin" value="0.25"/></bsdf></shape>
     <shape type="rectangle">
         <transform name="to_world"><rotate x="1" angle="-90"/><scale value="12"/></transform>
         <bsdf type="diffuse"><texture type="checkerboard" name="reflectance">
