@@ -35,6 +35,12 @@ pub fn luminance(c: Rgb) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
+/// [`luminance`] in f64: finite texels near f32's limit, or scaled up, do not overflow.
+#[inline]
+pub fn luminance_f64(c: Rgb) -> f64 {
+    0.2126 * c.x as f64 + 0.7152 * c.y as f64 + 0.0722 * c.z as f64
+}
+
 /// Conservative bound on the relative rounding error of `n` chained f32 operations
 /// (pbrt 3rd ed., eq. 3.9: gamma_n = n eps / (1 - n eps), eps = 2^-24).
 #[inline]

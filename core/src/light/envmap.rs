@@ -77,9 +77,7 @@ impl EnvMap {
         let (w, h) = (bitmap.width, bitmap.height);
         // Luminance in f64 (finite texels times a large scale may overflow f32), and the map's
         // integral from the texels' exact solid angles.
-        let texel_lum = |t: &Rgb| {
-            ((0.2126 * t.x as f64 + 0.7152 * t.y as f64 + 0.0722 * t.z as f64) * scale as f64).max(0.0)
-        };
+        let texel_lum = |t: &Rgb| (crate::math::luminance_f64(*t) * scale as f64).max(0.0);
         let max = bitmap.texels.iter().map(texel_lum).fold(0.0, f64::max);
         let integral: f64 = (0..h)
             .map(|j| {
