@@ -158,24 +158,27 @@ impl Mesh {
 
     /// Mitsuba's `cube`: [-1, 1]^3, 24 vertices so that each face has its own normal and uvs.
     pub fn cube() -> Mesh {
-        let mut m = Mesh::default();
-        // (normal, tangent u, tangent v) per face, with u x v = normal.
-        let faces = [
-            (Vec3::X, Vec3::NEG_Z, Vec3::Y),
-            (Vec3::NEG_X, Vec3::Z, Vec3::Y),
-            (Vec3::Y, Vec3::X, Vec3::NEG_Z),
-            (Vec3::NEG_Y, Vec3::X, Vec3::Z),
-            (Vec3::Z, Vec3::X, Vec3::Y),
-            (Vec3::NEG_Z, Vec3::NEG_X, Vec3::Y),
+        // Mitsuba 3's cube as it lays it out (read from `mi.load_dict({'type': 'cube'})`): per
+        // face (-y, +y, +x, +z, -x, -z) four corners with their uv, two triangles (0 1 2, 3 0 2),
+        // so that textures land on each face as they do there.
+        #[rustfmt::skip]
+        const CORNERS: [([f32; 3], [f32; 2]); 24] = [
+            ([1., -1., -1.], [0., 1.]), ([1., -1., 1.], [1., 1.]), ([-1., -1., 1.], [1., 0.]), ([-1., -1., -1.], [0., 0.]),
+            ([1., 1., -1.], [0., 1.]), ([-1., 1., -1.], [1., 1.]), ([-1., 1., 1.], [1., 0.]), ([1., 1., 1.], [0., 0.]),
+            ([1., -1., -1.], [0., 1.]), ([1., 1., -1.], [1., 1.]), ([1., 1., 1.], [1., 0.]), ([1., -1., 1.], [0., 0.]),
+            ([1., -1., 1.], [0., 1.]), ([1., 1., 1.], [1., 1.]), ([-1., 1., 1.], [1., 0.]), ([-1., -1., 1.], [0., 0.]),
+            ([-1., -1., 1.], [0., 1.]), ([-1., 1., 1.], [1., 1.]), ([-1., 1., -1.], [1., 0.]), ([-1., -1., -1.], [0., 0.]),
+            ([1., 1., -1.], [0., 1.]), ([1., -1., -1.], [1., 1.]), ([-1., -1., -1.], [1., 0.]), ([-1., 1., -1.], [0., 0.]),
         ];
-        for (n, u, v) in faces {
-            let base = m.positions.len() as u32;
-            for (su, sv) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
-                m.positions.push(n + u * su + v * sv);
-                m.uvs.push(Vec2::new((su + 1.0) * 0.5, (sv + 1.0) * 0.5));
-            }
-            m.tris.push([base, base + 1, base + 2]);
-            m.tris.push([base, base + 2, base + 3]);
+        let mut m = Mesh::default();
+        for (p, uv) in CORNERS {
+            m.positions.push(Vec3::from(p));
+            m.uvs.push(Vec2::from(uv));
+        }
+        for face in 0..6u32 {
+            let b = 4 * face;
+            m.tris.push([b, b + 1, b + 2]);
+            m.tris.push([b + 3, b, b + 2]);
         }
         m
     }
