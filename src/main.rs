@@ -154,8 +154,14 @@ fn render(a: RenderArgs) -> Result<()> {
     let defines = parse_defines(&a.define)?;
     let t0 = Instant::now();
     let scene = Scene::load(&a.scene, &defines)?;
+    let (groups, grouped) = scene.accel.group_stats();
+    let instanced = if groups > 0 {
+        format!(" (instances among them; {grouped} more in {groups} shape groups, held once)")
+    } else {
+        String::new()
+    };
     tracing::info!(
-        "loaded {} in {:.2}s: {} shapes, {} primitives, {} lights; tracing with an {}",
+        "loaded {} in {:.2}s: {} shapes, {} primitives{instanced}, {} lights; tracing with an {}",
         a.scene.display(),
         t0.elapsed().as_secs_f64(),
         scene.shapes.len(),

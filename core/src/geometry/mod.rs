@@ -12,7 +12,7 @@ use crate::math::{offset_ray_origin, Frame};
 
 pub use bvh::Accel;
 pub use mesh::Mesh;
-pub use shapes::{Disk, Geometry, Shape, Sphere};
+pub use shapes::{Disk, Geometry, Instance, Shape, Sphere};
 
 /// A ray `o + t d` for `t` in `[tmin, tmax)`. `d` is unit length unless stated otherwise.
 #[derive(Clone, Copy, Debug)]

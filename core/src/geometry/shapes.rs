@@ -76,6 +76,97 @@ pub enum Geometry {
     Disk(Disk),
     /// Round fibres (`linearcurve`); one primitive per segment.
     Curves(super::curves::Curves),
+    /// A placed copy of a shape group (Mitsuba's `instance`); traversed by the BVH that
+    /// holds the group's own tree.
+    Instance(Instance),
+}
+
+/// A shape group seen through `to_world` (an affine, invertible transform). The group's shapes
+/// and their BVH exist once however many instances there are; an instance is one primitive of
+/// the top-level BVH, whose box is the group's box carried to world space.
+#[derive(Clone, Debug)]
+pub struct Instance {
+    /// The group, in the order the scene defines them (see `Accel::build_grouped`).
+    pub group: u32,
+    pub to_world: Mat4,
+    pub to_object: Mat4,
+    /// The group's box in world space; `None` for an empty group.
+    pub bounds: Option<(Vec3, Vec3)>,
+}
+
+/// A world ray carried into an instance's space: unit direction, its length there (`scale`)
+/// and how far its origin was moved forward along it (`shift`), so that a distance `t` there
+/// is `(t + shift) / scale` in the world.
+pub(crate) struct LocalRay {
+    pub ray: Ray,
+    pub scale: f32,
+    pub shift: f32,
+}
+
+impl Instance {
+    /// The instance of `group`, whose shapes lie within `group_bounds` in the group's space.
+    pub fn new(group: u32, to_world: Mat4, group_bounds: Option<(Vec3, Vec3)>) -> Instance {
+        let bounds = group_bounds.map(|(lo, hi)| {
+            let (mut wlo, mut whi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+            for c in 0..8 {
+                let corner = Vec3::new(
+                    if c & 1 == 0 { lo.x } else { hi.x },
+                    if c & 2 == 0 { lo.y } else { hi.y },
+                    if c & 4 == 0 { lo.z } else { hi.z },
+                );
+                let (p, err) = transform_point_err(&to_world, corner);
+                (wlo, whi) = (wlo.min(p - err), whi.max(p + err));
+            }
+            (wlo, whi)
+        });
+        Instance { group, to_world, to_object: to_world.inverse(), bounds }
+    }
+
+    /// `ray`, with its far end at `tmax`, in the group's space. The origin's rounding error
+    /// there is stepped over along the ray (as pbrt-v4 does when it moves rays into object
+    /// space), so that a ray leaving a surface of the group does not find it again.
+    #[inline]
+    pub(crate) fn local_ray(&self, ray: &Ray, tmax: f32) -> LocalRay {
+        let (o, err) = transform_point_err(&self.to_object, ray.o);
+        let d = self.to_object.transform_vector3(ray.d);
+        let scale = d.length();
+        let d = d / scale;
+        let shift = d.abs().dot(err);
+        let ray = Ray {
+            o: o + d * shift,
+            d,
+            tmin: (ray.tmin * scale - shift).max(0.0),
+            tmax: tmax * scale - shift,
+        };
+        LocalRay { ray, scale, shift }
+    }
+
+    /// An interaction found in the group's space, in the world: the point and its error bound,
+    /// normals (by the inverse transpose, normalised), tangents and the world distance `t`.
+    pub(crate) fn to_world(&self, it: &Interaction, t: f32) -> Interaction {
+        let (p, err) = transform_point_err(&self.to_world, it.p);
+        let lin = abs_linear(&self.to_world);
+        let p_err = err + lin * it.p_err * (1.0 + gamma(3));
+        let normals = Mat3::from_mat4(self.to_object).transpose();
+        let ng = (normals * it.ng).normalize();
+        let ns = (normals * it.frame.n).normalize();
+        let dpdu = self.to_world.transform_vector3(it.dpdu);
+        let dpdv = self.to_world.transform_vector3(it.dpdv);
+        Interaction { p, p_err, t, ng, frame: Frame::from_normal_tangent(ns, dpdu), dpdu, dpdv, ..*it }
+    }
+}
+
+/// The matrix of absolute values of `m`'s linear part.
+fn abs_linear(m: &Mat4) -> Mat3 {
+    let a = Mat3::from_mat4(*m);
+    Mat3::from_cols(a.x_axis.abs(), a.y_axis.abs(), a.z_axis.abs())
+}
+
+/// `m` applied to point `p`, and a bound on the rounding error of that in f32
+/// (gamma(3) (|M| |p| + |t|), pbrt 3rd ed., section 3.9.3).
+fn transform_point_err(m: &Mat4, p: Vec3) -> (Vec3, Vec3) {
+    let err = (abs_linear(m) * p.abs() + m.w_axis.truncate().abs()) * gamma(3);
+    (m.transform_point3(p), err)
 }
 
 /// A shape placed in the scene, with its material and (optional) area emitter.
@@ -104,6 +195,7 @@ impl Geometry {
             Geometry::Mesh(m) => m.tris.len(),
             Geometry::Sphere(_) | Geometry::Disk(_) => 1,
             Geometry::Curves(c) => c.segments.len(),
+            Geometry::Instance(i) => i.bounds.is_some() as usize,
         }
     }
 
@@ -115,6 +207,7 @@ impl Geometry {
             }
             Geometry::Sphere(s) => (s.center - s.radius, s.center + s.radius),
             Geometry::Curves(c) => c.bounds(prim),
+            Geometry::Instance(i) => i.bounds.unwrap_or((Vec3::ZERO, Vec3::ZERO)),
             Geometry::Disk(d) => {
                 let mut lo = Vec3::splat(f32::INFINITY);
                 let mut hi = Vec3::splat(f32::NEG_INFINITY);
@@ -165,6 +258,7 @@ impl Shape {
                 }
                 Some((t, Vec2::new(q.x, q.y)))
             }
+            Geometry::Instance(_) => unreachable!("the BVH holding an instance's group traverses it"),
         }
     }
 
@@ -202,6 +296,7 @@ impl Shape {
                 let dpdv = d.to_world.transform_vector3(Vec3::new(-aux.y, aux.x, 0.0) * (2.0 * PI));
                 (p, p_err, d.normal, d.normal, uv, dpdu, dpdv)
             }
+            Geometry::Instance(_) => unreachable!("an instance's hits are its group's shapes'"),
         };
         if self.flip_normals {
             ng = -ng;
@@ -234,6 +329,7 @@ impl Shape {
                 let s = &c.segments[prim];
                 std::f64::consts::PI * (s.r0 + s.r1) as f64 * (s.p1 - s.p0).length() as f64
             }
+            Geometry::Instance(_) => 0.0,
         }
     }
 
@@ -257,6 +353,7 @@ impl Shape {
                 (p, p_err, d.normal, Disk::uv(q))
             }
             Geometry::Curves(_) => unreachable!("the loader refuses emitters on curves"),
+            Geometry::Instance(_) => unreachable!("the loader refuses emitters on instances"),
         };
         SurfacePoint { p, p_err, n: if self.flip_normals { -n } else { n }, uv }
     }

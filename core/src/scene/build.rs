@@ -13,7 +13,7 @@ use crate::bsdf::microfacet::fresnel_diffuse_reflectance;
 use crate::bsdf::{Bsdf, Conductor, Dielectric, Distribution, Plastic, RoughCoating, Roughness};
 use crate::camera::{tan_half_fov, Camera, ThinLens};
 use crate::film::Filter;
-use crate::geometry::{Accel, Disk, Geometry, Mesh, Shape, Sphere};
+use crate::geometry::{Accel, Disk, Geometry, Instance, Mesh, Shape, Sphere};
 use crate::light::{EnvMap, Light};
 use crate::math::Rgb;
 use crate::plan::RenderPlan;
@@ -136,6 +136,24 @@ struct Builder<'d> {
     shapes: Vec<Shape>,
     lights: Vec<Light>,
     assets: Vec<std::path::PathBuf>,
+    /// The shapes of each shape group (indices into `shapes`), in the order groups are built.
+    groups: Vec<Vec<u32>>,
+    /// Each shapegroup object's group and the box of its shapes (in the group's space).
+    group_of: HashMap<usize, (u32, Option<(Vec3, Vec3)>)>,
+    /// Whether the shapes being built belong to a group.
+    in_group: bool,
+}
+
+/// The box around everything `shapes` holds; `None` if they hold no primitive.
+fn bounds_of<'a>(shapes: impl Iterator<Item = &'a Shape>) -> Option<(Vec3, Vec3)> {
+    let mut b: Option<(Vec3, Vec3)> = None;
+    for s in shapes {
+        for k in 0..s.prim_count() {
+            let (lo, hi) = s.prim_bounds(k);
+            b = Some(b.map_or((lo, hi), |(l, h)| (l.min(lo), h.max(hi))));
+        }
+    }
+    b
 }
 
 /// Builds the scene of a parsed document within `limits`.
@@ -156,6 +174,9 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         shapes: Vec::new(),
         lights: Vec::new(),
         assets: Vec::new(),
+        groups: Vec::new(),
+        group_of: HashMap::new(),
+        in_group: false,
     };
     let root = doc.root;
     for tag in ["film", "rfilter", "sampler"] {
@@ -204,7 +225,8 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
             prims.saturating_mul(BVH_KEPT_PER_PRIM),
         )
         .map_err(|e| SceneError::file(&doc.file, e))?;
-    let accel = Accel::build(if b.budget.limits.accel { &b.shapes } else { &[] });
+    let accel =
+        if b.budget.limits.accel { Accel::build_grouped(&b.shapes, &b.groups) } else { Accel::build(&[]) };
     let mut scene = Scene {
         file: doc.file.clone(),
         camera: sensor,
@@ -891,6 +913,20 @@ impl Builder<'_> {
     fn shape(&mut self, i: usize) -> R<()> {
         let doc = self.doc;
         let o = doc.obj(i);
+        match o.plugin.as_str() {
+            "shapegroup" | "instance" if self.in_group => {
+                return Err(self.err(
+                    o.pos,
+                    format!(
+                        "a shapegroup cannot hold {}: nested instancing is not supported (nor in Mitsuba 3)",
+                        doc.describe(i)
+                    ),
+                ))
+            }
+            "shapegroup" => return self.shape_group(i).map(|_| ()),
+            "instance" => return self.instance(i),
+            _ => {}
+        }
         let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
         let flip_normals = doc.boolean_or(i, "flip_normals", false)?;
         let mesh = |m: Mesh| -> Geometry {
@@ -1022,7 +1058,18 @@ impl Builder<'_> {
             _ => {
                 return Err(self.unsupported_plugin(
                     i,
-                    &["obj", "ply", "rectangle", "cube", "sphere", "disk", "linearcurve", "bsplinecurve"],
+                    &[
+                        "obj",
+                        "ply",
+                        "rectangle",
+                        "cube",
+                        "sphere",
+                        "disk",
+                        "linearcurve",
+                        "bsplinecurve",
+                        "shapegroup",
+                        "instance",
+                    ],
                 ))
             }
         };
@@ -1049,6 +1096,12 @@ impl Builder<'_> {
         };
         match emitters.as_slice() {
             [] => {}
+            [(_, e, _)] if self.in_group => {
+                return Err(self.err(
+                    doc.obj(*e).pos,
+                    "a shape in a shapegroup cannot carry an emitter: instances of emitters are not supported (nor in Mitsuba 3)",
+                ));
+            }
             [(_, e, _)] => {
                 if matches!(shape.geometry, Geometry::Curves(_)) {
                     return Err(self.err(doc.obj(*e).pos, "curves cannot carry an area emitter"));
@@ -1069,6 +1122,70 @@ impl Builder<'_> {
             [_, (_, _, pos), ..] => return Err(self.err(*pos, "a shape takes one <emitter>")),
         }
         self.shapes.push(shape);
+        Ok(())
+    }
+
+    /// Builds a `shapegroup` once (however many instances name it): its shapes, in its own
+    /// space, are drawn only where instances place them.
+    fn shape_group(&mut self, i: usize) -> R<(u32, Option<(Vec3, Vec3)>)> {
+        if let Some(&g) = self.group_of.get(&i) {
+            return Ok(g);
+        }
+        let doc = self.doc;
+        if doc.has(i, "to_world") {
+            return Err(self.err(
+                doc.pos_of(i, "to_world"),
+                "a shapegroup takes no to_world: its instances' to_world places it (and its shapes' their own)",
+            ));
+        }
+        let first = self.shapes.len();
+        self.in_group = true;
+        let built = doc.children(i, "shape").into_iter().try_for_each(|(_, c, _)| self.shape(c));
+        self.in_group = false;
+        built?;
+        let bounds = bounds_of(self.shapes[first..].iter());
+        let g = (self.groups.len() as u32, bounds);
+        self.groups.push((first as u32..self.shapes.len() as u32).collect());
+        self.group_of.insert(i, g);
+        Ok(g)
+    }
+
+    /// An `instance`: one shapegroup (a `<ref>` or the group itself), placed by `to_world`.
+    fn instance(&mut self, i: usize) -> R<()> {
+        let doc = self.doc;
+        let o = doc.obj(i);
+        for tag in ["bsdf", "emitter"] {
+            if let Some((_, _, pos)) = doc.children(i, tag).first() {
+                return Err(self.err(
+                    *pos,
+                    format!("an instance takes no <{tag}>: the shapes of its shapegroup carry their own (as in Mitsuba 3)"),
+                ));
+            }
+        }
+        let (group, bounds) = match doc.children(i, "shape").as_slice() {
+            [] => {
+                return Err(self.err(
+                    o.pos,
+                    "an instance needs the shapegroup it places: <ref id=\"...\"/> naming a <shape type=\"shapegroup\">",
+                ))
+            }
+            [(_, c, _)] if doc.obj(*c).plugin == "shapegroup" => self.shape_group(*c)?,
+            [(_, c, pos)] => {
+                return Err(self.err(*pos, format!("an instance places a shapegroup, not {}", doc.describe(*c))))
+            }
+            [_, (_, _, pos), ..] => return Err(self.err(*pos, "an instance places one shapegroup")),
+        };
+        let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
+        let geometry = Geometry::Instance(Instance::new(group, to_world, bounds));
+        self.check_extent(i, &geometry)?;
+        self.shapes.push(Shape {
+            geometry,
+            // Never read: hits inside an instance are its group's shapes', with their BSDFs.
+            bsdf: u32::MAX,
+            light: None,
+            flip_normals: false,
+            name: o.id.clone().unwrap_or_else(|| o.plugin.clone()),
+        });
         Ok(())
     }
 
