@@ -27,6 +27,13 @@ pub struct GenerateArgs {
     /// Seed of the fur's random placement.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Tufts of grass on the ground: one tuft (grass.txt) in a shapegroup, placed this many
+    /// times by instances (turned, scaled), so they cost the memory of one.
+    #[arg(long, default_value_t = 0)]
+    pub grass_tufts: u64,
+    /// Blades of one tuft (one B-spline span each: 8 segments).
+    #[arg(long, default_value_t = 200)]
+    pub blades: u64,
 }
 
 /// An ellipsoid of the body: centre, radii, its share of the triangles and of the fibres.
@@ -77,9 +84,28 @@ pub fn generate(a: GenerateArgs) -> Result<()> {
     let tris = write_body(&a.dir.join("body.ply"), a.body_triangles)?;
     write_fur(&a.dir.join("fur.txt"), a.fibres, a.seed)?;
     sky().write_exr(&a.dir.join("sky.exr"))?;
-    std::fs::write(a.dir.join("scene.xml"), SCENE).context("cannot write scene.xml")?;
+    let mut scene = SCENE.to_string();
+    if a.grass_tufts > 0 {
+        if a.blades == 0 {
+            bail!("--blades must be at least 1");
+        }
+        write_tuft(&a.dir.join("grass.txt"), a.blades, a.seed)?;
+        scene = scene.replace("</scene>", &grass(a.grass_tufts, a.seed)?);
+    }
+    std::fs::write(a.dir.join("scene.xml"), scene).context("cannot write scene.xml")?;
+    let grass = if a.grass_tufts > 0 {
+        format!(
+            ", and {} tufts of {} grass blades ({} segments drawn, {} held)",
+            a.grass_tufts,
+            a.blades,
+            a.grass_tufts.saturating_mul(a.blades * 8),
+            a.blades * 8
+        )
+    } else {
+        String::new()
+    };
     println!(
-        "wrote {}: {tris} body triangles and {} fibres ({} segments): {} primitives, in {:.1} s",
+        "wrote {}: {tris} body triangles and {} fibres ({} segments): {} primitives{grass}, in {:.1} s",
         a.dir.join("scene.xml").display(),
         a.fibres,
         a.fibres * 8,
@@ -87,6 +113,69 @@ pub fn generate(a: GenerateArgs) -> Result<()> {
         t.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// The generator's random numbers in [0, 1), from `seed` and a stream tag.
+fn rng(seed: u64, stream: u64) -> impl FnMut() -> f64 {
+    let mut state = seed.wrapping_mul(0x9e3779b97f4a7c15) ^ 0x853c49e6748fea9b ^ stream;
+    move || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// One tuft of grass: `blades` B-spline blades rooted in a disk of radius 0.12 at the origin,
+/// 0.25 to 0.4 tall, leaning outwards.
+fn write_tuft(path: &Path, blades: u64, seed: u64) -> Result<()> {
+    let mut next = rng(seed, 0x67726173);
+    let mut f = std::io::BufWriter::new(
+        std::fs::File::create(path).with_context(|| format!("cannot write {}", path.display()))?,
+    );
+    for _ in 0..blades {
+        let (r, a) = (0.12 * next().sqrt(), 2.0 * std::f64::consts::PI * next());
+        let root = Vec3::new((r * a.cos()) as f32, 0.0, (r * a.sin()) as f32);
+        let lean = Vec3::new(root.x, 0.0, root.z) * 1.5
+            + Vec3::new(next() as f32 - 0.5, 0.0, next() as f32 - 0.5) * 0.2;
+        let height = (0.25 + 0.15 * next()) as f32;
+        for k in 0..4 {
+            let t = k as f32 / 3.0;
+            let p = root + Vec3::Y * (height * t) + lean * (t * t);
+            writeln!(f, "{:.5} {:.5} {:.5} {:.5}", p.x, p.y, p.z, 0.004 * (1.0 - 0.8 * t))?;
+        }
+        writeln!(f)?;
+    }
+    f.flush()?;
+    Ok(())
+}
+
+/// The grass group and `tufts` instances of it on the ground around the creature and the
+/// balls (kept 0.3 clear of them), closing the scene.
+fn grass(tufts: u64, seed: u64) -> Result<String> {
+    let mut next = rng(seed, 0x74756674);
+    let mut xml = String::from(
+        r#"    <shape type="shapegroup" id="grass">
+        <shape type="bsplinecurve"><string name="filename" value="grass.txt"/>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.22, 0.42, 0.1"/></bsdf></shape>
+    </shape>
+"#,
+    );
+    let clear = [(0.0, 0.0, 1.7), (0.95, 0.1, 0.9), (-2.2, 1.0, 0.9), (2.3, 1.0, 0.8)];
+    let mut placed = 0;
+    while placed < tufts {
+        let (x, z) = (-10.0 + 20.0 * next(), -8.0 + 15.0 * next());
+        if clear.iter().any(|&(cx, cz, r)| (x - cx) * (x - cx) + (z - cz) * (z - cz) < r * r) {
+            continue;
+        }
+        let (turn, size) = (360.0 * next(), 0.7 + 0.6 * next());
+        use std::fmt::Write as _;
+        writeln!(
+            xml,
+            r#"    <shape type="instance"><ref id="grass"/><transform name="to_world"><scale value="{size:.3}"/><rotate y="1" angle="{turn:.1}"/><translate x="{x:.4}" z="{z:.4}"/></transform></shape>"#
+        )?;
+        placed += 1;
+    }
+    xml.push_str("</scene>\n");
+    Ok(xml)
 }
 
 /// The body as binary little-endian PLY; returns its triangle count.
@@ -147,11 +236,7 @@ fn write_body(path: &Path, triangles: u64) -> Result<u64> {
 /// Fibres rooted uniformly over the parts (by their shares), growing along the normal, drooping
 /// and bending a little, tapering from 3 to 0.5 thousandths.
 fn write_fur(path: &Path, fibres: u64, seed: u64) -> Result<()> {
-    let mut state = seed.wrapping_mul(0x9e3779b97f4a7c15) ^ 0x853c49e6748fea9b;
-    let mut next = || {
-        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (state >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut next = rng(seed, 0);
     let mut f = std::io::BufWriter::with_capacity(
         1 << 20,
         std::fs::File::create(path).with_context(|| format!("cannot write {}", path.display()))?,

@@ -151,14 +151,15 @@ fn a_job_beyond_the_chunk_limit_is_refused_naming_the_limit() {
 
 /// `furnace generate` writes a scene of the seed's class of the size asked (body triangles,
 /// 8 segments a fibre, a ground and two balls) that loads with every plugin it names and
-/// renders: the fur (hair BSDF) and the ground are lit by the sun/sky map.
+/// renders: the fur (hair BSDF) and the ground are lit by the sun/sky map; the grass is one
+/// tuft in a shapegroup, placed by an instance per tuft.
 #[test]
 fn generate_writes_a_seed_class_scene_that_renders() {
     let dir = scratch("generate");
     let o = furnace()
         .arg("generate")
         .arg(&dir)
-        .args(["--fibres", "3000", "--body-triangles", "2000"])
+        .args(["--fibres", "3000", "--body-triangles", "2000", "--grass-tufts", "40", "--blades", "30"])
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout);
@@ -166,7 +167,8 @@ fn generate_writes_a_seed_class_scene_that_renders() {
     let tris: u64 = stdout.split(": ").nth(1).and_then(|s| s.split(' ').next()).unwrap().parse().unwrap();
     assert!((1800..=2200).contains(&tris), "{stdout}");
     let scene = furnace_core::Scene::load(&dir.join("scene.xml"), &[]).unwrap();
-    assert_eq!(scene.accel.prim_count() as u64, tris + 3000 * 8 + 2 + 2, "{stdout}");
+    assert_eq!(scene.accel.prim_count() as u64, tris + 3000 * 8 + 2 + 2 + 40, "{stdout}");
+    assert_eq!(scene.accel.group_stats(), (1, 30 * 8), "{stdout}");
     assert_eq!((scene.film.width, scene.film.height), (1920, 1080));
     assert!(
         scene.plan.bsdfs.contains(&"hair") && scene.plan.has_light(furnace_core::light::LightKind::Envmap)
