@@ -155,8 +155,13 @@ fn render(a: RenderArgs) -> Result<()> {
     let t0 = Instant::now();
     let scene = Scene::load(&a.scene, &defines)?;
     let (groups, grouped) = scene.accel.group_stats();
+    let instances = scene
+        .shapes
+        .iter()
+        .filter(|s| matches!(s.geometry, furnace_core::geometry::Geometry::Instance(_)))
+        .count();
     let instanced = if groups > 0 {
-        format!(" (instances among them; {grouped} more in {groups} shape groups, held once)")
+        format!(" ({instances} instances among them; {grouped} more in {groups} shape groups, held once)")
     } else {
         String::new()
     };

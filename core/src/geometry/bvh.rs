@@ -972,7 +972,8 @@ mod tests {
         Shape { geometry, bsdf: 0, light: None, flip_normals: false, name: name.into() }
     }
 
-    /// Transforms an instance may have: rotated, scaled unevenly, mirrored, far from the origin.
+    /// Transforms an instance may have: rotated, scaled unevenly, mirrored, far from the
+    /// origin, squashed flat (1e-6 along z: rays from 20 units are 2e7 away in its space).
     fn placements() -> Vec<glam::Mat4> {
         use glam::{Mat4, Quat};
         vec![
@@ -983,6 +984,8 @@ mod tests {
                 * Mat4::from_scale(Vec3::new(0.5, 2.0, 1.3)),
             Mat4::from_translation(Vec3::new(3.0, 14.0, -6.0)) * Mat4::from_scale(Vec3::new(-1.0, 1.0, 1.0)),
             Mat4::from_translation(Vec3::new(900.0, -700.0, 1300.0)) * Mat4::from_scale(Vec3::splat(0.05)),
+            Mat4::from_translation(Vec3::new(-20.0, -15.0, 10.0))
+                * Mat4::from_scale(Vec3::new(1.0, 1.0, 1e-6)),
         ]
     }
 
@@ -1010,7 +1013,7 @@ mod tests {
         assert_eq!(accel.prim_count(), placements().len());
         assert_eq!(accel.group_stats(), (1, 400));
         let mut s = 5;
-        let (mut hits, mut disagree) = (0, [0; 5]);
+        let (mut hits, mut disagree) = (0, [0; 6]);
         for (k, m) in placements().into_iter().enumerate() {
             for _ in 0..1500 {
                 // Rays from around each placement towards points inside it.
@@ -1048,12 +1051,15 @@ mod tests {
                             let tri = mesh.tri(g.prim as usize).map(|v| v.as_dvec3());
                             let local = (tri[1] - tri[0]).cross(tri[2] - tri[0]);
                             let off_plane = |md: &glam::DMat4| {
-                                let q = md.inverse().transform_point3(g.p.as_dvec3());
-                                let lo = tri[0].min(tri[1]).min(tri[2]) - 1e-2;
-                                let hi = tri[0].max(tri[1]).max(tri[2]) + 1e-2;
-                                let inside = q.cmpge(lo).all() && q.cmple(hi).all();
+                                let w = tri.map(|v| md.transform_point3(v));
+                                let p = g.p.as_dvec3();
+                                let slack = 1e-3 + 1e-5 * p.abs().max_element();
+                                let lo = w[0].min(w[1]).min(w[2]) - slack;
+                                let hi = w[0].max(w[1]).max(w[2]) + slack;
+                                let n = (w[1] - w[0]).cross(w[2] - w[0]).normalize();
+                                let inside = p.cmpge(lo).all() && p.cmple(hi).all();
                                 if inside {
-                                    (q - tri[0]).dot(local.normalize()).abs()
+                                    (p - w[0]).dot(n).abs() / slack
                                 } else {
                                     f64::INFINITY
                                 }
@@ -1063,7 +1069,7 @@ mod tests {
                                 .map(|m| m.as_dmat4())
                                 .min_by(|a, b| off_plane(a).total_cmp(&off_plane(b)))
                                 .unwrap_or_else(|| unreachable!());
-                            assert!(off_plane(&md) < 1e-2, "the hit lies on a placed copy of its triangle");
+                            assert!(off_plane(&md) < 1.0, "the hit lies on a placed copy of its triangle");
                             let exact =
                                 (glam::DMat3::from_mat4(md.inverse()).transpose() * local).normalize();
                             assert!(
@@ -1094,6 +1100,7 @@ mod tests {
         // triangles 0.015 wide, do rays through edges go either way (21 of 6402 here).
         eprintln!("{hits} hits, disagreements by placement: {disagree:?}");
         assert_eq!(disagree[..4], [0; 4]);
+        assert_eq!(disagree[5], 0, "the squashed placement");
         assert!(disagree[4] * 100 < hits, "{} of {hits} rays disagree", disagree[4]);
     }
 
@@ -1136,6 +1143,37 @@ mod tests {
             }
         }
         assert_eq!((out, back), (0, 0), "rays out that hit again, rays in that missed");
+    }
+
+    /// A panel in an instance squashed 1e-9 across (the most the loader allows) is hit by
+    /// every ray aimed at it from a few units away, as the same panel placed flat is: such a
+    /// ray starts 1e9 times farther away in the group's space, past what a triangle's error
+    /// bound accepts, unless it starts again near the group's box.
+    #[test]
+    fn a_squashed_instance_is_still_hit() {
+        use crate::geometry::Instance;
+        let panel = shape(Geometry::Mesh(Mesh::rectangle()), "panel");
+        for squash in [1e-3, 1e-6, 1e-9] {
+            let m = glam::Mat4::from_scale(Vec3::new(1.0, 1.0, squash));
+            let inst = Instance::new(0, m, Some((Vec3::new(-1.0, -1.0, 0.0), Vec3::new(1.0, 1.0, 0.0))));
+            let shapes = vec![panel.clone(), shape(Geometry::Instance(inst), "squashed")];
+            let accel = Accel::build_grouped(&shapes, &[vec![0]]);
+            let mut s = 3;
+            for _ in 0..2000 {
+                let aim = Vec3::new(xorshift(&mut s) * 1.9 - 0.95, xorshift(&mut s) * 1.9 - 0.95, 0.0);
+                let o = Vec3::new(xorshift(&mut s) - 0.5, xorshift(&mut s) - 0.5, 1.0) * 6.0;
+                let ray = Ray::new(o, (aim - o).normalize());
+                let it = accel
+                    .intersect(&shapes, &ray)
+                    .unwrap_or_else(|| panic!("squash {squash}: missed from {o}"));
+                assert!(
+                    (it.p - aim).length() < 1e-5 && it.ng.z.abs() > 0.9999,
+                    "squash {squash}: {} {}",
+                    it.p,
+                    it.ng
+                );
+            }
+        }
     }
 
     /// 20,000 triangles with one box between them: the builder still gives a shallow tree,

@@ -92,6 +92,8 @@ pub struct Instance {
     pub to_object: Mat4,
     /// The group's box in world space; `None` for an empty group.
     pub bounds: Option<(Vec3, Vec3)>,
+    /// The group's box in its own space.
+    pub local_bounds: Option<(Vec3, Vec3)>,
 }
 
 /// A world ray carried into an instance's space: unit direction, its length there (`scale`)
@@ -119,19 +121,35 @@ impl Instance {
             }
             (wlo, whi)
         });
-        Instance { group, to_world, to_object: to_world.inverse(), bounds }
+        Instance { group, to_world, to_object: to_world.inverse(), bounds, local_bounds: group_bounds }
     }
 
     /// `ray`, with its far end at `tmax`, in the group's space. The origin's rounding error
     /// there is stepped over along the ray (as pbrt-v4 does when it moves rays into object
-    /// space), so that a ray leaving a surface of the group does not find it again.
+    /// space), so that a ray leaving a surface of the group does not find it again. A ray
+    /// from outside the group's box starts again a box diagonal before it: a triangle's hit
+    /// is accepted only beyond an error bound that grows with the distance from the ray's
+    /// origin, and an instance squashed along an axis makes that distance huge in the
+    /// group's space (a panel scaled by 1e-6 across, seen from 6 units, vanished).
     #[inline]
     pub(crate) fn local_ray(&self, ray: &Ray, tmax: f32) -> LocalRay {
         let (o, err) = transform_point_err(&self.to_object, ray.o);
         let d = self.to_object.transform_vector3(ray.d);
         let scale = d.length();
         let d = d / scale;
-        let shift = d.abs().dot(err);
+        let mut shift = d.abs().dot(err);
+        if let Some((lo, hi)) = self.local_bounds {
+            // Where the ray enters the box (a lower bound: NaN slabs, of a ray along a face,
+            // and slabs it never leaves drop out of the max), less the diagonal and far more
+            // than the rounding of the slab distances.
+            let at = o + d * shift;
+            let (t0, t1) = ((lo - at) / d, (hi - at) / d);
+            let enter = t0.min(t1).max_element();
+            let start = enter - (hi - lo).length() - enter.abs() * 1e-6;
+            if start > 0.0 {
+                shift += start;
+            }
+        }
         let ray = Ray {
             o: o + d * shift,
             d,

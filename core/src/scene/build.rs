@@ -23,6 +23,9 @@ use crate::texture::{
 
 type R<T> = Result<T, SceneError>;
 
+/// How many times an instance may shrink its group along a direction (see `Builder::instance`).
+pub const MAX_INSTANCE_SHRINK: f32 = 1e9;
+
 /// The largest film side, in pixels.
 pub const MAX_FILM_SIDE: u32 = 65535;
 /// The most pixels a film may have (8K UHD is 2^24.98): a job's accumulation takes 96 bytes a
@@ -1158,7 +1161,11 @@ impl Builder<'_> {
             if let Some((_, _, pos)) = doc.children(i, tag).first() {
                 return Err(self.err(
                     *pos,
-                    format!("an instance takes no <{tag}>: the shapes of its shapegroup carry their own (as in Mitsuba 3)"),
+                    if tag == "bsdf" {
+                        "an instance takes no <bsdf>: the shapes of its shapegroup carry their own (as in Mitsuba 3)"
+                    } else {
+                        "an instance takes no <emitter>: instances of emitters are not supported (nor in Mitsuba 3)"
+                    },
                 ));
             }
         }
@@ -1176,6 +1183,18 @@ impl Builder<'_> {
             [_, (_, _, pos), ..] => return Err(self.err(*pos, "an instance places one shapegroup")),
         };
         let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
+        // Squashed along some direction, an instance moves rays' origins far away in its
+        // group's space: past about 1e10 a hit's distance is no longer resolved in f32 (a
+        // panel squashed 1e-11 seen from 6 units loses pixels; below 1e-19 the direction
+        // itself overflows). The parser has checked that the transform is invertible.
+        let shrink =
+            Mat3::from_mat4(to_world.inverse()).to_cols_array().iter().fold(0f32, |m, x| m.max(x.abs()));
+        if !(shrink <= MAX_INSTANCE_SHRINK) {
+            return Err(self.err(
+                doc.pos_of(i, "to_world"),
+                format!("an instance's to_world may shrink its group at most {MAX_INSTANCE_SHRINK:e} times along any direction; this one shrinks it about {shrink:e} times"),
+            ));
+        }
         let geometry = Geometry::Instance(Instance::new(group, to_world, bounds));
         self.check_extent(i, &geometry)?;
         self.shapes.push(Shape {
