@@ -121,6 +121,10 @@ fn two_workers_render_the_same_bytes_as_furnace_render() {
     let job = submit(&url, "small.xml", 24, 8);
     let farm = wait_done(&url, &job, Duration::from_secs(120));
     assert!(farm == local_render(&dir, "small.xml", 24), "farm result differs from furnace render");
+    // Instances (two shapegroups; their files, a texture and a curve file, go in the bundle).
+    let inst = submit(&url, "instances.xml", 8, 4);
+    let farm_inst = wait_done(&url, &inst, Duration::from_secs(120));
+    assert!(farm_inst == local_render(&dir, "instances.xml", 8), "instanced scene: farm result differs");
     let s = status(&url, &job);
     assert_eq!(s["chunks_done"], s["chunks_total"]);
     assert_eq!(s["samples_done"], s["samples_total"]);

@@ -49,8 +49,12 @@ impl RoughCoating {
     pub fn new(roughness: Roughness, eta: f32) -> (RoughCoating, f32) {
         // (transmitted, reflected) energy per mu: over visible microfacets m (stratified),
         // E[(1 - F) G1(w_t, m)] and E[F G1(w_r, m)]; no lobe is sampled, Fresnel weights both.
+        // Rows in parallel (each sums its own samples in order: the same values on any
+        // number of threads); 1.2M samples in all took 1.66 s of a load on one core.
+        use rayon::prelude::*;
         let table = |eta: f32| -> Vec<(f32, f32)> {
             (0..TABLE)
+                .into_par_iter()
                 .map(|i| {
                     let mu = (i as f32 + 0.5) / TABLE as f32;
                     let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
