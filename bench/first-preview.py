@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
 """Time to the first preview, and to the result, of one job through a farm on this machine.
 
-usage: bench/first-preview.py SCENE.xml [--workers 1] [--worker-threads 0] [SUBMIT ARGS ...]
+usage: bench/first-preview.py SCENE.xml [--workers 1] [--worker-threads 0] [--processes]
+                               [SUBMIT ARGS ...]
 
 Starts `furnace serve` on a fresh data folder with --local-workers (each with
---worker-threads threads, 0: all cores), then `furnace submit SCENE --wait` with the submit
+--worker-threads threads, 0: all cores), or with --processes that many `furnace worker`
+processes beside it (each with its own cache folder), then `furnace submit SCENE --wait` with the submit
 arguments given (--spp, --target-rel-error, --tile, --spp-per-chunk, ...), and polls the
 job: the time from submit to the job's creation (the client has loaded the scene and
 uploaded its files), to its first merged chunk with `preview.png` served, and to the result
@@ -24,6 +26,17 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FURNACE = os.environ.get("FURNACE", os.path.join(ROOT, "target", "release", "furnace"))
 
 
+def hwm(pid):
+    """Peak resident memory of a live process, in GB (Linux /proc), or 0."""
+    try:
+        for line in open(f"/proc/{pid}/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1e6
+    except OSError:
+        pass
+    return 0.0
+
+
 def get(url):
     with urllib.request.urlopen(url, timeout=10) as r:
         return r.read()
@@ -34,7 +47,7 @@ def main():
     if not args or args[0].startswith("-"):
         sys.exit(__doc__)
     scene, rest = args[0], args[1:]
-    workers, threads = "1", "0"
+    workers, threads, processes = "1", "0", False
     submit_args = []
     i = 0
     while i < len(rest):
@@ -44,6 +57,9 @@ def main():
         elif rest[i] == "--worker-threads":
             threads = rest[i + 1]
             i += 2
+        elif rest[i] == "--processes":
+            processes = True
+            i += 1
         else:
             submit_args.append(rest[i])
             i += 1
@@ -51,11 +67,12 @@ def main():
         submit_args += ["--tile", "64"]  # submit's default; render's is 32, and tiles decide a target's stops
     tmp = tempfile.mkdtemp(prefix="first-preview-")
     serve_cmd = [FURNACE, "serve", "--data-dir", os.path.join(tmp, "data"), "--bind", "127.0.0.1:0",
-                 "--local-workers", workers]
-    if threads != "0":
+                 "--local-workers", "0" if processes else workers]
+    if threads != "0" and not processes:
         serve_cmd += ["--worker-threads", threads]
     serve_out = open(os.path.join(tmp, "serve.out"), "w")
     serve = subprocess.Popen(serve_cmd, stdout=serve_out, stderr=subprocess.STDOUT)
+    procs = []
     try:
         url = None
         while url is None:
@@ -63,14 +80,23 @@ def main():
             for line in open(os.path.join(tmp, "serve.out")):
                 if "listening on " in line:
                     url = line.split("listening on ", 1)[1].split()[0]
+        for w in range(int(workers) if processes else 0):
+            cmd = [FURNACE, "worker", "--coordinator", url, "--name", f"w{w}", "--cache", os.path.join(tmp, f"cache{w}")]
+            if threads != "0":
+                cmd += ["--threads", threads]
+            procs.append(subprocess.Popen(cmd, stdout=subprocess.DEVNULL,
+                                          stderr=open(os.path.join(tmp, f"worker{w}.err"), "w")))
         farm = os.path.join(tmp, "farm.exr")
         t0 = time.time()
         sub = subprocess.Popen([FURNACE, "submit", scene, "--coordinator", url, "--wait", "-o", farm] + submit_args,
                                stdout=subprocess.DEVNULL, stderr=open(os.path.join(tmp, "submit.err"), "w"))
         created = first = None
         job = None
+        peaks = {}
         while sub.poll() is None:
             time.sleep(0.25)
+            for name, p in [("coordinator", serve), ("client", sub)] + [(f"worker{w}", p) for w, p in enumerate(procs)]:
+                peaks[name] = max(peaks.get(name, 0.0), hwm(p.pid))
             try:
                 jobs = json.loads(get(url + "/v1/jobs"))
             except OSError:
@@ -96,9 +122,11 @@ def main():
         status = json.loads(get(f"{url}/v1/jobs/{job['id']}"))
         print(f"result after {done:.1f} s: {status['chunks_done'] - status['chunks_skipped']} chunks rendered, "
               f"{status['chunks_skipped']} skipped at the target, {status['samples_done']} samples", flush=True)
+        print("peak resident memory: " + ", ".join(f"{k} {v:.2f} GB" for k, v in peaks.items()), flush=True)
     finally:
-        serve.terminate()
-        serve.wait()
+        for p in procs + [serve]:
+            p.terminate()
+            p.wait()
     local = os.path.join(tmp, "local.exr")
     render_args = list(submit_args)
     t1 = time.time()
