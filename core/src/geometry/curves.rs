@@ -45,10 +45,83 @@ pub enum CurveError {
     Empty,
 }
 
+/// Bytes of a curve file that [`read_curve_file`] reads and parses at a time.
+pub const CURVE_BLOCK: usize = 1 << 26;
+
+/// Reads and parses a curve file a block of about [`CURVE_BLOCK`] bytes at a time, each cut
+/// just after a blank line, so that the file's text is never held whole (a 66M-segment file
+/// is 1.1 GB): at most a block and the part of a curve that runs past it. The result is
+/// that of [`parse_curve_file`] on the whole text, errors and their line numbers included.
+pub fn read_curve_file(
+    reader: impl std::io::Read,
+    min_points: usize,
+) -> Result<Vec<Vec<(Vec3, f32)>>, CurveError> {
+    read_curve_blocks(reader, min_points, CURVE_BLOCK)
+}
+
+fn read_curve_blocks(
+    mut reader: impl std::io::Read,
+    min_points: usize,
+    block: usize,
+) -> Result<Vec<Vec<(Vec3, f32)>>, CurveError> {
+    use std::io::Read;
+    let mut curves = Vec::new();
+    let mut buf: Vec<u8> = Vec::new();
+    let mut line = 1;
+    loop {
+        // Fill to a block; a curve longer than one makes the buffer grow.
+        let room = block.saturating_sub(buf.len()).max(block / 4).max(1);
+        let n = (&mut reader).take(room as u64).read_to_end(&mut buf)?;
+        let eof = n < room;
+        // Cut just after the last blank line ("\n\n" or "\n\r\n"), or take all at the end.
+        let cut = if eof {
+            buf.len()
+        } else {
+            let blank = buf.windows(2).rposition(|w| w == b"\n\n").map(|k| k + 2);
+            let blank_crlf = buf.windows(3).rposition(|w| w == b"\n\r\n").map(|k| k + 3);
+            match blank.max(blank_crlf) {
+                Some(cut) => cut,
+                None => continue,
+            }
+        };
+        let text = std::str::from_utf8(&buf[..cut]).map_err(|e| {
+            let at = line + buf[..e.valid_up_to()].iter().filter(|&&c| c == b'\n').count();
+            CurveError::Io(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("line {at}: not UTF-8 text"),
+            ))
+        })?;
+        curves.extend(parse_curve_text(text, line, min_points)?);
+        line += text.bytes().filter(|&c| c == b'\n').count();
+        buf.drain(..cut);
+        if eof {
+            break;
+        }
+    }
+    if curves.is_empty() {
+        return Err(CurveError::Empty);
+    }
+    Ok(curves)
+}
+
 /// Parses Mitsuba's curve text format: one control point per line, a blank line between
 /// curves, no comments. Returns the curves' control points (position, radius). Large files
 /// are cut at blank lines into pieces parsed in parallel; errors name the file's line.
 pub fn parse_curve_file(text: &str, min_points: usize) -> Result<Vec<Vec<(Vec3, f32)>>, CurveError> {
+    let curves = parse_curve_text(text, 1, min_points)?;
+    if curves.is_empty() {
+        return Err(CurveError::Empty);
+    }
+    Ok(curves)
+}
+
+/// [`parse_curve_file`] of text whose first line is line `first_line` of its file, which
+/// may hold no curve.
+fn parse_curve_text(
+    text: &str,
+    first_line: usize,
+    min_points: usize,
+) -> Result<Vec<Vec<(Vec3, f32)>>, CurveError> {
     use rayon::prelude::*;
     const PIECE: usize = 1 << 20;
     // Piece boundaries: just after a blank line, about every PIECE bytes.
@@ -69,7 +142,7 @@ pub fn parse_curve_file(text: &str, min_points: usize) -> Result<Vec<Vec<(Vec3, 
     cuts.push(bytes.len());
     // First line number of each piece.
     let pieces: Vec<(usize, &str)> = {
-        let mut line = 1;
+        let mut line = first_line;
         cuts.windows(2)
             .map(|w| {
                 let piece = &text[w[0]..w[1]];
@@ -83,11 +156,7 @@ pub fn parse_curve_file(text: &str, min_points: usize) -> Result<Vec<Vec<(Vec3, 
         .par_iter()
         .map(|&(first, piece)| parse_piece(piece, first, min_points))
         .collect::<Result<_, _>>()?;
-    let curves: Vec<Vec<(Vec3, f32)>> = parsed.into_iter().flatten().collect();
-    if curves.is_empty() {
-        return Err(CurveError::Empty);
-    }
-    Ok(curves)
+    Ok(parsed.into_iter().flatten().collect())
 }
 
 /// Parses whole curves from `text`, whose first line is line `first` of the file.
@@ -189,30 +258,41 @@ impl Curves {
             pts.push(eval(c, spans - 1, 1.0));
             (pts, err)
         };
-        // In chunks of curves, so that parallel work stays coarse.
-        let parts: Vec<(Curves, f32)> = curves
-            .par_chunks(4096)
-            .map(|chunk| {
-                let mut max_err = 0.0f32;
-                let points: Vec<Vec<(Vec3, f32)>> = chunk
-                    .iter()
-                    .map(|c| {
-                        let (pts, err) = tessellate(c);
-                        max_err = max_err.max(err);
-                        pts
-                    })
-                    .collect();
-                (Curves::linear(&points), max_err)
-            })
-            .collect();
-        let total = parts.iter().map(|(c, _)| c.segments.len()).sum();
-        let mut out = Curves { segments: Vec::with_capacity(total), curve_count: curves.len() };
-        let mut max_err = 0.0f32;
-        for (c, err) in parts {
-            out.segments.extend_from_slice(&c.segments);
-            max_err = max_err.max(err);
+        // In chunks of curves, so that parallel work stays coarse, each writing its segments
+        // straight into its part of the one array (66M segments are 2.6 GB: built in pieces
+        // and then joined, they were held twice).
+        const CHUNK: usize = 4096;
+        let counts: Vec<usize> =
+            curves.chunks(CHUNK).map(|chunk| chunk.iter().map(|c| (c.len() - 3) * steps).sum()).collect();
+        let zero = Segment { p0: Vec3::ZERO, p1: Vec3::ZERO, r0: 0.0, r1: 0.0, u0: 0.0, du: 0.0 };
+        let mut segments = vec![zero; counts.iter().sum()];
+        let mut parts: Vec<&mut [Segment]> = Vec::with_capacity(counts.len());
+        let mut rest = segments.as_mut_slice();
+        for &n in &counts {
+            let (part, tail) = rest.split_at_mut(n);
+            parts.push(part);
+            rest = tail;
         }
-        (out, max_err)
+        let max_err = curves
+            .par_chunks(CHUNK)
+            .zip(parts.into_par_iter())
+            .map(|(chunk, out)| {
+                let mut max_err = 0.0f32;
+                let mut at = 0;
+                for c in chunk {
+                    let (pts, err) = tessellate(c);
+                    max_err = max_err.max(err);
+                    let n = pts.len() - 1;
+                    for i in 0..n {
+                        let ((p0, r0), (p1, r1)) = (pts[i], pts[i + 1]);
+                        out[at] = Segment { p0, p1, r0, r1, u0: i as f32 / n as f32, du: 1.0 / n as f32 };
+                        at += 1;
+                    }
+                }
+                max_err
+            })
+            .reduce(|| 0.0f32, f32::max);
+        (Curves { segments, curve_count: curves.len() }, max_err)
     }
 
     pub fn bounds(&self, i: usize) -> (Vec3, Vec3) {
@@ -649,6 +729,42 @@ mod tests {
         ));
         assert!(matches!(parse_curve_file("# comment\n", 2), Err(CurveError::Parse { line: 1, .. })));
         assert!(matches!(parse_curve_file("0 0 0 0\n1 0 0 1\n", 2), Err(CurveError::Radius { line: 1 })));
+    }
+
+    /// Read a block at a time, a file gives what its whole text gives: the same curves for
+    /// blocks smaller than a curve, than a line, and larger than the file, with "\n" or
+    /// "\r\n" line ends; and errors at the same line.
+    #[test]
+    fn curve_files_read_in_blocks_parse_as_whole_text() {
+        let mut text = String::new();
+        for c in 0..300 {
+            for k in 0..(2 + c % 5) {
+                text += &format!("{} {}.5 {} 0.0{}\n", c, k, c % 7, 1 + k % 9);
+            }
+            text += if c % 3 == 0 { "\n\n" } else { "\n" };
+        }
+        let whole = parse_curve_file(&text, 2).unwrap();
+        assert_eq!(whole.len(), 300);
+        let crlf = text.replace('\n', "\r\n");
+        for block in [5, 17, 64, 1000, 1 << 20] {
+            for t in [&text, &crlf] {
+                let read = read_curve_blocks(t.as_bytes(), 2, block).unwrap();
+                assert_eq!(read, whole, "block {block}");
+            }
+        }
+        // An error deep in the file names the same line either way.
+        let bad = text.replacen("150 1.5", "150 x", 1);
+        let line = |r: Result<Vec<Vec<(Vec3, f32)>>, CurveError>| match r {
+            Err(CurveError::Parse { line, .. }) => line,
+            other => panic!("{other:?}"),
+        };
+        let at = line(parse_curve_file(&bad, 2));
+        assert!(at > 400, "line {at}");
+        for block in [5, 64, 1000] {
+            assert_eq!(line(read_curve_blocks(bad.as_bytes(), 2, block)), at, "block {block}");
+        }
+        assert!(matches!(read_curve_blocks(&b"\n\n\n"[..], 2, 4), Err(CurveError::Empty)));
+        assert!(matches!(read_curve_blocks(&b"0 0 0 1\n\xff 0 0 1\n"[..], 2, 4), Err(CurveError::Io(_))));
     }
 
     #[test]

@@ -120,6 +120,22 @@ impl Budget {
     }
 }
 
+/// The lines of the file at `path` (newlines, and one), read a buffer at a time.
+fn count_lines(path: &std::path::Path) -> std::io::Result<u64> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path)?;
+    let mut buf = vec![0u8; 1 << 20];
+    let mut lines = 1;
+    loop {
+        match f.read(&mut buf) {
+            Ok(0) => return Ok(lines),
+            Ok(n) => lines += buf[..n].iter().filter(|&&c| c == b'\n').count() as u64,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+}
+
 /// The size of the file at `path` (0 if it cannot be read: its loader says why).
 fn file_size(path: &std::path::Path) -> u64 {
     std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
@@ -1006,22 +1022,23 @@ impl Builder<'_> {
                     .ok_or_else(|| self.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
                 let fpos = doc.pos_of(i, "filename");
                 let path = doc.resolve_path(fpos, &rel)?;
-                // The text is read whole first; what parsing it holds then follows from its
-                // lines: each a point (16 bytes, up to twice that in a grown list), and each
+                // The text is read a block at a time (`read_curve_file`), never whole; what
+                // parsing holds follows from the file's lines, counted first in a streamed
+                // pass: each a point (16 bytes, up to twice that in a grown list), and each
                 // curve (at least `min` points) a list in two lists of lists (about 96 bytes).
                 let size = file_size(&path);
-                self.budget.charge(&format!("curve file '{rel}'"), size, 0).map_err(|e| self.err(fpos, e))?;
-                let text = std::fs::read_to_string(&path)
-                    .map_err(|e| self.err(fpos, format!("cannot read curve file '{rel}': {e}")))?;
+                let cannot =
+                    |e: std::io::Error| doc.err(fpos, format!("cannot read curve file '{rel}': {e}"));
+                let lines = count_lines(&path).map_err(cannot)?;
                 let min = if bspline { 4 } else { 2 };
-                let lines = text.as_bytes().iter().filter(|&&c| c == b'\n').count() as u64 + 1;
-                let parse = size.saturating_add(lines.saturating_mul(CURVE_POINT_PARSE + CURVE_PARSE / min));
+                let text = size.min(2 * crate::geometry::curves::CURVE_BLOCK as u64);
+                let parse = text.saturating_add(lines.saturating_mul(CURVE_POINT_PARSE + CURVE_PARSE / min));
                 self.budget
                     .charge(&format!("curve file '{rel}'"), parse, 0)
                     .map_err(|e| self.err(fpos, e))?;
-                let mut curves = crate::geometry::curves::parse_curve_file(&text, min as usize)
+                let file = std::fs::File::open(&path).map_err(cannot)?;
+                let mut curves = crate::geometry::curves::read_curve_file(file, min as usize)
                     .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
-                drop(text);
                 // to_world moves the points, not the radii (as Mitsuba).
                 for c in &mut curves {
                     for (p, _) in c.iter_mut() {
@@ -1037,15 +1054,11 @@ impl Builder<'_> {
                     .sum();
                 let kept =
                     segments.saturating_mul(std::mem::size_of::<crate::geometry::curves::Segment>() as u64);
-                // Meanwhile the parsed points are still held, and the segments twice (made in
-                // parallel pieces, then joined).
-                let points = parse - size;
+                // Meanwhile the parsed points are still held, and the B-spline tessellation's
+                // points of the curves being worked on (a few thousand per thread).
+                let points = parse - text;
                 self.budget
-                    .charge(
-                        &format!("curve file '{rel}'"),
-                        points.saturating_add(kept.saturating_mul(2)),
-                        kept,
-                    )
+                    .charge(&format!("curve file '{rel}'"), points.saturating_add(kept), kept)
                     .map_err(|e| self.err(fpos, e))?;
                 if bspline {
                     let (c, err) = crate::geometry::curves::Curves::bspline(&curves, BSPLINE_STEPS);
