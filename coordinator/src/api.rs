@@ -423,7 +423,7 @@ struct Deadline(Instant);
 /// trickling its body cannot hold a connection slot.
 async fn time_limit(State(s): State<AppState>, mut req: Request, next: Next) -> Response {
     // A file upload also gets the time its declared length takes at MIN_UPLOAD_RATE.
-    let upload = (req.method() == axum::http::Method::PUT && req.uri().path().starts_with("/v1/files/"))
+    let upload = is_file_upload(&req)
         .then(|| {
             req.headers()
                 .get(header::CONTENT_LENGTH)
@@ -438,6 +438,11 @@ async fn time_limit(State(s): State<AppState>, mut req: Request, next: Next) -> 
         Ok(r) => r,
         Err(_) => error(StatusCode::REQUEST_TIMEOUT, format!("the request took longer than {limit:?}")),
     }
+}
+
+/// Whether `req` uploads a file (`PUT /v1/files/{hash}`), which streams to disk.
+fn is_file_upload(req: &Request) -> bool {
+    req.method() == axum::http::Method::PUT && req.uri().path().starts_with("/v1/files/")
 }
 
 /// Bytes a second a file upload must keep up on average: on top of the request time limit,
@@ -479,7 +484,7 @@ async fn body_budget(State(s): State<AppState>, req: Request, next: Next) -> Res
         .and_then(|v| v.parse::<u64>().ok());
     let len = declared.unwrap_or(0);
     // A file upload streams to disk: its own limit, and only its queue held in the budget.
-    let streamed = req.method() == axum::http::Method::PUT && req.uri().path().starts_with("/v1/files/");
+    let streamed = is_file_upload(&req);
     let limit = if streamed { s.max_file } else { s.max_body as u64 };
     if len > limit {
         return CoordError::TooLarge(format!("the body ({len} bytes) is over the limit of {limit} bytes"))

@@ -209,12 +209,7 @@ impl Curves {
     pub fn linear(curves: &[Vec<(Vec3, f32)>]) -> Curves {
         let mut segments = Vec::with_capacity(curves.iter().map(|c| c.len() - 1).sum());
         for c in curves {
-            let n = c.len() - 1;
-            for i in 0..n {
-                let (p0, r0) = c[i];
-                let (p1, r1) = c[i + 1];
-                segments.push(Segment { p0, p1, r0, r1, u0: i as f32 / n as f32, du: 1.0 / n as f32 });
-            }
+            segments.extend(polyline(c));
         }
         Curves { segments, curve_count: curves.len() }
     }
@@ -282,10 +277,8 @@ impl Curves {
                 for c in chunk {
                     let (pts, err) = tessellate(c);
                     max_err = max_err.max(err);
-                    let n = pts.len() - 1;
-                    for i in 0..n {
-                        let ((p0, r0), (p1, r1)) = (pts[i], pts[i + 1]);
-                        out[at] = Segment { p0, p1, r0, r1, u0: i as f32 / n as f32, du: 1.0 / n as f32 };
+                    for seg in polyline(&pts) {
+                        out[at] = seg;
                         at += 1;
                     }
                 }
@@ -299,6 +292,15 @@ impl Curves {
         let s = &self.segments[i];
         (s.p0.min(s.p1) - Vec3::splat(s.r0.max(s.r1)), s.p0.max(s.p1) + Vec3::splat(s.r0.max(s.r1)))
     }
+}
+
+/// The segments joining consecutive points of one curve, with u spread evenly along them.
+fn polyline(pts: &[(Vec3, f32)]) -> impl Iterator<Item = Segment> + '_ {
+    let n = pts.len() - 1;
+    pts.windows(2).enumerate().map(move |(i, w)| {
+        let ((p0, r0), (p1, r1)) = (w[0], w[1]);
+        Segment { p0, p1, r0, r1, u0: i as f32 / n as f32, du: 1.0 / n as f32 }
+    })
 }
 
 /// Which part of a segment a hit lies on.
