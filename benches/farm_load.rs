@@ -70,7 +70,7 @@ fn submit(server: &Server, scene_path: &Path, scene: &Scene, settings: &JobSetti
     for (rel, path) in files {
         store.put_file(&bundle.files[&rel], &std::fs::read(path).expect("read file")).expect("store file");
     }
-    let spec = JobSpec { bundle, settings: settings.clone() };
+    let spec = JobSpec::new(bundle, settings.clone());
     furnace_coordinator::state::submit(&server.coord, spec, None, None).expect("submit").0
 }
 
@@ -207,7 +207,7 @@ fn submit_http(
             assert!(r.expect("PUT").status().is_success());
         }
     }
-    let r = http.post(format!("{url}/v1/jobs")).json(&JobSpec { bundle, settings: s.clone() }).send();
+    let r = http.post(format!("{url}/v1/jobs")).json(&JobSpec::new(bundle, s.clone())).send();
     r.expect("POST").json::<furnace_proto::Submitted>().expect("job id").id
 }
 

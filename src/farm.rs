@@ -1,5 +1,6 @@
 //! The farm's commands: `serve`, `worker`, `submit`, `status`.
 
+use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -9,7 +10,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use furnace_core::Scene;
-use furnace_proto::{ApiError, Bundle, JobSettings, JobSpec, JobState, JobStatus};
+use furnace_proto::{ApiError, Bundle, FrameRange, JobSettings, JobSpec, JobState, JobStatus};
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -159,10 +160,18 @@ pub struct SubmitArgs {
     /// Stop each tile at this estimated relative error (then --spp is the cap).
     #[arg(long)]
     pub target_rel_error: Option<f64>,
+    /// Set a scene parameter, as Mitsuba's -D: `-D spp=16`.
+    #[arg(short = 'D', value_name = "NAME=VALUE")]
+    pub define: Vec<String>,
+    /// Render frames FIRST-LAST[:STEP] as one job: frame N is the scene with `-D frame=N`,
+    /// and with `####` in the scene's file name replaced by N, zero-padded (anim_####.xml).
+    #[arg(long, value_name = "FIRST-LAST[:STEP]")]
+    pub frames: Option<String>,
     /// Follow progress and download the result.
     #[arg(long)]
     pub wait: bool,
-    /// Where --wait writes the result.
+    /// Where --wait writes the result (an EXR, and a PNG beside it); with --frames, `####` in
+    /// it takes each frame's number (default: JOB_####.exr).
     #[arg(short, long)]
     pub output: Option<PathBuf>,
 }
@@ -315,12 +324,68 @@ impl Api {
     }
 }
 
-pub fn submit(a: SubmitArgs) -> Result<()> {
-    let api = Api::new(&a.coordinator, a.token.clone())?;
+/// The bundle of a submission: the scene's, or for a frame range the union of every frame's
+/// (each frame's scene loaded with `frame` defined, its `####` file name filled in), with the
+/// scene's path as given (`####` and all). Returns the bundle, its files on this machine,
+/// and the first frame's scene.
+fn bundle_of(
+    scene: &std::path::Path,
+    defines: &[(String, String)],
+    frames: Option<FrameRange>,
+) -> Result<(Bundle, BTreeMap<String, PathBuf>, Scene)> {
     // Loaded to check it and to find its files: no BVH (the workers build their own).
     let limits = furnace_core::LoadLimits { accel: false, ..Default::default() };
-    let scene = Scene::load_with(&a.scene, &[], &limits)?;
-    let (bundle, files) = Bundle::of_scene(&a.scene, &scene).map_err(anyhow::Error::msg)?;
+    let Some(range) = frames else {
+        let loaded = Scene::load_with(scene, defines, &limits)?;
+        let (bundle, files) = Bundle::of_scene(scene, &loaded).map_err(anyhow::Error::msg)?;
+        return Ok((bundle, files.into_iter().collect(), loaded));
+    };
+    let pattern = scene.to_string_lossy().to_string();
+    let name = scene.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+    if scene.parent().is_some_and(|d| d.to_string_lossy().contains('#')) {
+        bail!(
+            "{pattern}: '#' may stand for the frame number in the scene's file name only, not in its folder"
+        );
+    }
+    let mut union = Bundle { scene: String::new(), files: BTreeMap::new() };
+    let mut local = BTreeMap::new();
+    let mut first = None;
+    let bar = indicatif::ProgressBar::new(range.count());
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("checking frames {bar:40} {pos}/{len}")
+            .expect("static progress template"),
+    );
+    for n in range.numbers() {
+        let path = PathBuf::from(furnace_proto::frame_path(&pattern, n));
+        let mut defs = defines.to_vec();
+        defs.retain(|(k, _)| k != "frame");
+        defs.push(("frame".into(), n.to_string()));
+        let loaded = Scene::load_with(&path, &defs, &limits).with_context(|| format!("frame {n}"))?;
+        let (bundle, files) = Bundle::of_scene(&path, &loaded).map_err(anyhow::Error::msg)?;
+        for (rel, file) in files {
+            let hash = &bundle.files[&rel];
+            if union.files.insert(rel.clone(), hash.clone()).is_some_and(|h| h != *hash) {
+                bail!("{}: the file changed while the frames were read", file.display());
+            }
+            local.insert(rel, file);
+        }
+        if first.is_none() {
+            // The scene's path in the bundle, with its pattern.
+            let dir = bundle.scene.rsplit_once('/').map(|(d, _)| format!("{d}/")).unwrap_or_default();
+            union.scene = format!("{dir}{name}");
+            first = Some(loaded);
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok((union, local, first.expect("a frame range has a frame")))
+}
+
+pub fn submit(a: SubmitArgs) -> Result<()> {
+    let api = Api::new(&a.coordinator, a.token.clone())?;
+    let defines = crate::parse_defines(&a.define)?;
+    let frames = a.frames.as_deref().map(FrameRange::parse).transpose().map_err(anyhow::Error::msg)?;
+    let (bundle, files, scene) = bundle_of(&a.scene, &defines, frames)?;
     for (rel, path) in &files {
         let hash = &bundle.files[rel];
         let head = api.req(reqwest::Method::HEAD, &format!("/v1/files/{hash}")).send()?;
@@ -344,7 +409,7 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
         priority: a.priority,
         target_rel_error: a.target_rel_error,
     };
-    let spec = JobSpec { bundle, settings };
+    let spec = JobSpec { defines: defines.into_iter().collect(), frames, ..JobSpec::new(bundle, settings) };
     let key = blake3::hash(serde_json::to_string(&spec)?.as_bytes()).to_hex()[..32].to_string();
     let key = format!("{key}-{}", std::process::id());
     let r = api.req(reqwest::Method::POST, "/v1/jobs").header("Idempotency-Key", key).json(&spec).send()?;
@@ -364,7 +429,11 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
         let st = api.status(&id)?;
         bar.set_length(st.samples_total);
         bar.set_position(st.samples_done);
-        let error = st.estimated_rel_mse.map(|e| format!(", error {:.3}", e.sqrt())).unwrap_or_default();
+        let mut error = st.estimated_rel_mse.map(|e| format!(", error {:.3}", e.sqrt())).unwrap_or_default();
+        if !st.frames.is_empty() {
+            let done = st.frames.iter().filter(|f| f.state == JobState::Done).count();
+            error = format!(", {done}/{} frames{error}", st.frames.len());
+        }
         bar.set_message(match st.eta_seconds {
             Some(e) => format!("{:.0} samples/s, ETA {e:.0}s{error}", st.samples_per_second),
             None => error,
@@ -378,10 +447,34 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
         }
     }
     bar.finish_and_clear();
-    let r = Api::check(api.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/result.exr")).send()?)?;
-    let out = a.output.unwrap_or_else(|| PathBuf::from(format!("{id}.exr")));
-    std::fs::write(&out, r.bytes()?).with_context(|| format!("cannot write {}", out.display()))?;
-    eprintln!("wrote {}", out.display());
+    let Some(range) = frames else {
+        let out = a.output.unwrap_or_else(|| PathBuf::from(format!("{id}.exr")));
+        return download(&api, &format!("/v1/jobs/{id}/result.exr"), &out);
+    };
+    let out = a.output.unwrap_or_else(|| PathBuf::from(format!("{id}_####.exr")));
+    let pattern = out.to_string_lossy().to_string();
+    if !pattern.contains('#') && range.count() > 1 {
+        bail!(
+            "-o {pattern}: a frame range needs '#'s in the output name for the frame number (out_####.exr)"
+        );
+    }
+    for n in range.numbers() {
+        let out = PathBuf::from(furnace_proto::frame_path(&pattern, n));
+        download(&api, &format!("/v1/jobs/{id}/frames/{n}/result.exr"), &out)?;
+    }
+    Ok(())
+}
+
+/// Writes the EXR at `path` to `out`, and its PNG (exposure 0) beside it, as `furnace render`
+/// does.
+fn download(api: &Api, path: &str, out: &std::path::Path) -> Result<()> {
+    let bytes = Api::check(api.req(reqwest::Method::GET, path).send()?)?.bytes()?;
+    std::fs::write(out, &bytes).with_context(|| format!("cannot write {}", out.display()))?;
+    let png = out.with_extension("png");
+    let image =
+        furnace_core::Image::read_exr(out).with_context(|| format!("cannot read {}", out.display()))?;
+    image.write_png(&png, 0.0).with_context(|| format!("cannot write {}", png.display()))?;
+    eprintln!("wrote {} and {}", out.display(), png.display());
     Ok(())
 }
 

@@ -32,7 +32,7 @@ impl Link for LocalLink {
         self.lock().heartbeat(&l.job, l.chunk.id, l.epoch, std::time::Instant::now()).is_ok()
     }
     fn scene(&self, l: &Lease) -> Result<Arc<Scene>, String> {
-        self.lock().job_scene(&l.job).ok_or_else(|| format!("job {} has no scene in this process", l.job))
+        furnace_coordinator::state::load_scene(&self.coord, &l.job).map_err(|e| e.to_string())
     }
     fn upload(&self, l: &Lease, acc: &Accum, stats: &Stats) -> Uploaded {
         match accept_partial(&self.coord, &l.job, l.chunk.id, l.epoch, acc, Some(stats), None) {

@@ -141,7 +141,7 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-fn parse_defines(defs: &[String]) -> Result<Vec<(String, String)>> {
+pub(crate) fn parse_defines(defs: &[String]) -> Result<Vec<(String, String)>> {
     defs.iter()
         .map(|d| match d.split_once('=') {
             Some((k, v)) if !k.is_empty() => Ok((k.to_string(), v.to_string())),

@@ -33,7 +33,7 @@ fn store_small(coord: &Mutex<Coordinator>, scene: &Scene) -> Bundle {
 /// Stores small.xml's files in the coordinator and submits a job; returns its id.
 fn submit_small(coord: &Mutex<Coordinator>, scene: &Scene, settings: JobSettings) -> String {
     let bundle = store_small(coord, scene);
-    state::submit(coord, JobSpec { bundle, settings }, None, None).unwrap().0
+    state::submit(coord, JobSpec::new(bundle, settings), None, None).unwrap().0
 }
 
 /// Leases, renders and hands in up to `limit` chunks through `accept_partial` (the path of
@@ -310,8 +310,7 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
     }
     xml.push_str("</scene>");
     let bundle = store_bundle(&coord, "big.xml", &[("big.xml", xml.as_bytes())]);
-    let spec =
-        JobSpec { bundle, settings: JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() } };
+    let spec = JobSpec::new(bundle, JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() });
     let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let submitter = {
         let (coord, done) = (coord.clone(), done.clone());
@@ -345,13 +344,8 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
         "a/bad.xml",
         &[("a/bad.xml", b"<scene version=\"3.0.0\"><shape type=\"teapot\"/></scene>")],
     );
-    let e = furnace_coordinator::state::submit(
-        &coord,
-        JobSpec { bundle: bad, settings: JobSettings::default() },
-        None,
-        None,
-    )
-    .unwrap_err();
+    let e = furnace_coordinator::state::submit(&coord, JobSpec::new(bad, JobSettings::default()), None, None)
+        .unwrap_err();
     // It names the file as the bundle does, not where this host keeps it.
     let data = dir.join("data").display().to_string();
     assert!(
@@ -363,8 +357,7 @@ fn scenes_load_outside_the_lock_and_failed_submissions_leave_nothing() {
     // nothing: no job appears after its client was told the submission failed.
     let scene = load("small.xml", &[]);
     let bundle = store_small(&coord, &scene);
-    let spec =
-        JobSpec { bundle, settings: JobSettings { spp: 1, width: 0, height: 0, ..JobSettings::default() } };
+    let spec = JobSpec::new(bundle, JobSettings { spp: 1, width: 0, height: 0, ..JobSettings::default() });
     let jobs = coord.lock().unwrap().job_ids().len();
     let late = furnace_coordinator::state::submit(&coord, spec.clone(), Some("k"), Some(Instant::now()));
     assert!(matches!(&late, Err(CoordError::TooLarge(m)) if m.contains("nothing was submitted")), "{late:?}");
@@ -564,7 +557,7 @@ fn chunks_too_big_to_upload_and_jobs_over_the_memory_cap_are_refused() {
     coord.lock().unwrap().max_partial = 100_000;
     let settings = JobSettings { spp: 1, tile_size: 64, width: 0, height: 0, ..Default::default() };
     let bundle = store_small(&coord, &scene);
-    let spec = |settings: &JobSettings| JobSpec { bundle: bundle.clone(), settings: settings.clone() };
+    let spec = |settings: &JobSettings| JobSpec::new(bundle.clone(), settings.clone());
     let e = state::submit(&coord, spec(&settings), None, None).unwrap_err();
     assert!(matches!(&e, CoordError::Unrenderable(m) if m.contains("smaller tile_size")), "{e:?}");
     let small = JobSettings { tile_size: 8, ..settings };
@@ -640,8 +633,7 @@ fn concurrent_submissions_of_one_bundle_leave_its_files_intact() {
     let settings = JobSettings { width: 0, height: 0, spp: 1, ..JobSettings::default() };
     let threads: Vec<_> = (0..4)
         .map(|_| {
-            let (coord, spec) =
-                (coord.clone(), JobSpec { bundle: bundle.clone(), settings: settings.clone() });
+            let (coord, spec) = (coord.clone(), JobSpec::new(bundle.clone(), settings.clone()));
             std::thread::spawn(move || furnace_coordinator::state::submit(&coord, spec, None, None))
         })
         .collect();
@@ -779,5 +771,126 @@ fn deleting_a_job_keeps_the_files_other_jobs_use() {
     state::delete(&coord, &b).unwrap();
     assert_eq!(files(), 0);
     assert!(!laid_out.exists() && !dir.join("data/jobs").join(&b).exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Stores the files of every frame of `scene` (frames.xml with `frame` = each of `frames`) in
+/// the coordinator; returns their union bundle.
+fn store_frames(coord: &Mutex<Coordinator>, frames: &[u32]) -> Bundle {
+    let mut union = Bundle { scene: "frames.xml".into(), files: Default::default() };
+    for n in frames {
+        let scene = load("frames.xml", &[("frame", &n.to_string())]);
+        let (bundle, files) = Bundle::of_scene(&scenes().join("frames.xml"), &scene).unwrap();
+        for (rel, path) in files {
+            coord
+                .lock()
+                .unwrap()
+                .store()
+                .put_file(&bundle.files[&rel], &std::fs::read(path).unwrap())
+                .unwrap();
+        }
+        union.files.extend(bundle.files);
+    }
+    union
+}
+
+/// Issue 18: a frame range is one job whose frames are jobs of their own: handed out frame by
+/// frame, each merged into its own image (equal to rendering that frame alone), listed as one
+/// job with a status per frame, restored as one after a restart (its idempotency key still
+/// naming it), and paused, resumed and deleted as one.
+#[test]
+fn a_frame_range_is_one_job_rendered_frame_by_frame() {
+    let dir = scratch("coord-frames");
+    let data = dir.join("data");
+    let coord = open_coordinator(&data);
+    let range = furnace_proto::FrameRange::parse("0-20:10").unwrap();
+    let numbers: Vec<u32> = range.numbers().collect();
+    let bundle = store_frames(&coord, &numbers);
+    let settings = JobSettings {
+        spp: 4,
+        tile_size: 16,
+        spp_per_chunk: 2,
+        seed: 3,
+        width: 0,
+        height: 0,
+        ..Default::default()
+    };
+    let spec = JobSpec { frames: Some(range), ..JobSpec::new(bundle.clone(), settings.clone()) };
+    let (job, created) = state::submit(&coord, spec.clone(), Some("anim"), None).unwrap();
+    assert!(created);
+    // A spec may not claim to be another job's frame.
+    let forged = JobSpec {
+        frame_of: Some(furnace_proto::FrameOf { job: job.clone(), frame: 0 }),
+        ..JobSpec::new(bundle.clone(), settings.clone())
+    };
+    let e = state::submit(&coord, forged, None, None).unwrap_err();
+    assert!(matches!(&e, CoordError::Invalid(m) if m.contains("frame_of")), "{e:?}");
+    {
+        let c = coord.lock().unwrap();
+        assert_eq!(c.job_ids(), vec![job.clone()], "the frames are listed as one job");
+        let st = c.status(&job).unwrap();
+        assert_eq!(st.frames.iter().map(|f| f.frame).collect::<Vec<_>>(), numbers);
+        // 40 x 32 in 16-pixel tiles, 2 passes: 12 chunks a frame.
+        assert_eq!((st.chunks_total, st.samples_total), (36, 3 * 40 * 32 * 4));
+        assert_eq!(st.state, JobState::Queued);
+        let e = c.result_path(&job).unwrap_err();
+        assert!(e.to_string().contains("/frames/{n}/result.exr"), "{e}");
+        assert!(matches!(c.frame_job(&job, 5), Err(CoordError::Unknown(_))));
+    }
+    // Frame 0's chunks go first, then frame 10's; a restart meanwhile changes nothing.
+    let frame_of = |l: &furnace_proto::Lease| l.job.rsplit('-').next().unwrap().parse::<u32>().unwrap();
+    let mut order = Vec::new();
+    let hand_in = |coord: &Mutex<Coordinator>, limit: usize, order: &mut Vec<u32>| {
+        for _ in 0..limit {
+            let Some(l) = coord.lock().unwrap().lease("w", Instant::now()) else { break };
+            order.push(frame_of(&l));
+            let defines: Vec<(&str, &str)> =
+                l.defines.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
+            let scene = load("frames.xml", &defines);
+            let (acc, stats) = render_chunk(&scene, &l.chunk, l.settings.seed);
+            accept_partial(coord, &l.job, l.chunk.id, l.epoch, &acc, Some(&stats), None).unwrap();
+        }
+    };
+    hand_in(&coord, 15, &mut order);
+    {
+        let c = coord.lock().unwrap();
+        let st = c.status(&job).unwrap();
+        assert_eq!(st.state, JobState::Running);
+        assert_eq!(st.frames[0].state, JobState::Done);
+        assert_eq!((st.frames[1].chunks_done, st.frames[2].chunks_done), (3, 0));
+        assert_eq!(st.chunks_done, 15);
+    }
+    drop(coord);
+    let coord = open_coordinator(&data);
+    assert_eq!(state::submit(&coord, spec.clone(), Some("anim"), None).unwrap(), (job.clone(), false));
+    state::control(&coord, &job, "pause").unwrap();
+    assert!(
+        coord.lock().unwrap().lease("w", Instant::now()).is_none(),
+        "a paused frame range hands out nothing"
+    );
+    assert_eq!(coord.lock().unwrap().status(&job).unwrap().state, JobState::Paused);
+    state::control(&coord, &job, "resume").unwrap();
+    hand_in(&coord, usize::MAX, &mut order);
+    assert!(order.windows(2).all(|w| w[0] <= w[1]), "frames out of order: {order:?}");
+    assert_eq!(order.len(), 36);
+    let c = coord.lock().unwrap();
+    let st = c.status(&job).unwrap();
+    assert_eq!(st.state, JobState::Done);
+    assert!(st.frames.iter().all(|f| f.state == JobState::Done && f.samples_done == 40 * 32 * 4));
+    for n in numbers {
+        // Each frame's result is what rendering that frame alone gives.
+        let frame = c.frame_job(&job, n).unwrap();
+        let scene = load("frames.xml", &[("frame", &n.to_string())]);
+        let alone = render(&scene, 4, 3).0.develop();
+        let path = c.result_path(&frame).unwrap();
+        let got = furnace_core::Image::read_exr(&path).unwrap();
+        assert!(got.data == alone.data, "frame {n} differs from its render alone");
+    }
+    drop(c);
+    let e = state::control(&coord, &job, "cancel").unwrap_err();
+    assert!(matches!(&e, CoordError::Refused(m) if m.contains("is done")), "{e:?}");
+    state::delete(&coord, &job).unwrap();
+    assert!(coord.lock().unwrap().job_ids().is_empty());
+    assert!(std::fs::read_dir(data.join("jobs")).unwrap().next().is_none(), "a frame's folder is left");
     std::fs::remove_dir_all(&dir).ok();
 }

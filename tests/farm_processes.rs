@@ -622,7 +622,7 @@ fn idempotency_pause_resume_failures_preview_events_and_cancel() {
             &get(&format!("{url}/v1/bundles/{}", furnace_proto::Bundle::hash(&bundle_of(&url, &job)))).1,
         )
         .unwrap();
-        JobSpec { bundle: b, settings: serde_json::from_value(s["settings"].clone()).unwrap() }
+        JobSpec::new(b, serde_json::from_value(s["settings"].clone()).unwrap())
     };
     let post =
         || http.post(format!("{url}/v1/jobs")).header("Idempotency-Key", "k1").json(&spec).send().unwrap();
@@ -1344,5 +1344,93 @@ fn deploy_files_validate_and_agree_with_the_binary() {
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "deploy/check.py:\n{text}");
     assert!(text.starts_with("ok: "), "{text}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `furnace render` of `scene` in `dir` at `spp` with scene parameters `defines`.
+fn local_render_with(scene: &Path, spp: u32, defines: &[&str], out: &Path) -> Vec<u8> {
+    let mut cmd = Command::new(BIN);
+    cmd.arg("render").arg(scene).args(["--spp", &spp.to_string(), "--threads", "2", "-o"]).arg(out);
+    for d in defines {
+        cmd.args(["-D", d]);
+    }
+    let st = cmd.stdout(Stdio::null()).stderr(Stdio::null()).status().unwrap();
+    assert!(st.success());
+    std::fs::read(out).unwrap()
+}
+
+/// Issue 18: `furnace submit --frames A-B:STEP --wait -o out_####.exr` renders every frame on
+/// two workers and writes each frame's EXR and PNG, each byte-identical to `furnace render
+/// SCENE -D frame=N`; the frames come as per-frame files (`anim_####.xml`) too. Each file the
+/// frames share is stored once.
+#[test]
+fn frame_ranges_render_each_frame_as_furnace_render_does() {
+    let dir = scratch("farmframes");
+    let (_c, url) = coordinator(&dir.join("data"), &[], 0);
+    let _w1 = worker(&url, "w1", &dir.join("cache1"));
+    let _w2 = worker(&url, "w2", &dir.join("cache2"));
+    let submit_frames = |scene: &Path, frames: &str, out: &str| {
+        let out = Command::new(BIN)
+            .arg("submit")
+            .arg(scene)
+            .args(["--coordinator", &url, "--spp", "6", "--tile", "16", "--spp-per-chunk", "3"])
+            .args(["--frames", frames, "--wait", "-o"])
+            .arg(dir.join(out))
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap().trim().to_string()
+    };
+    // The scene's `frame` parameter.
+    let job = submit_frames(&scenes().join("frames.xml"), "0-20:10", "out_####.exr");
+    for n in [0, 10, 20] {
+        let farm = std::fs::read(dir.join(format!("out_{n:04}.exr"))).unwrap();
+        assert!(dir.join(format!("out_{n:04}.png")).is_file());
+        let alone =
+            local_render_with(&scenes().join("frames.xml"), 6, &[&format!("frame={n}")], &dir.join("l.exr"));
+        assert!(farm == alone, "frame {n}: the farm's result differs from furnace render -D frame={n}");
+        assert_eq!(get(&format!("{url}/v1/jobs/{job}/frames/{n}/result.exr")), (200, farm));
+        assert_eq!(get(&format!("{url}/v1/jobs/{job}/frames/{n}/preview.png")).0, 200);
+    }
+    let s = status(&url, &job);
+    assert_eq!(s["state"], "done");
+    let frames = s["frames"].as_array().unwrap();
+    assert_eq!(frames.iter().map(|f| f["frame"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 10, 20]);
+    assert!(frames.iter().all(|f| f["state"] == "done" && f["samples_done"] == 40 * 32 * 6));
+    assert_eq!(s["samples_done"], 3 * 40 * 32 * 6);
+    assert_eq!(get(&format!("{url}/v1/jobs/{job}/result.exr")).0, 409);
+    assert_eq!(get(&format!("{url}/v1/jobs/{job}/frames/5/result.exr")).0, 404);
+    assert_eq!(get(&format!("{url}/v1/jobs/{job}/frames/x/result.exr")).0, 400);
+    // The scene, the mesh and the texture, each stored once for the three frames.
+    assert_eq!(std::fs::read_dir(dir.join("data/files")).unwrap().count(), 3);
+    // Per-frame files: anim_0001.xml and anim_0003.xml, the box turned by hand in each.
+    let anim = dir.join("anim");
+    std::fs::create_dir_all(anim.join("assets")).unwrap();
+    for a in ["quad.obj", "checker.png"] {
+        std::fs::copy(scenes().join("assets").join(a), anim.join("assets").join(a)).unwrap();
+    }
+    let text = std::fs::read_to_string(scenes().join("frames.xml")).unwrap();
+    for n in [1, 3] {
+        let turned = text.replace("angle=\"$frame\"", &format!("angle=\"{}\"", 30 * n));
+        std::fs::write(anim.join(format!("anim_{n:04}.xml")), turned).unwrap();
+    }
+    submit_frames(&anim.join("anim_####.xml"), "1-3:2", "anim_##.exr");
+    for n in [1, 3] {
+        let farm = std::fs::read(dir.join(format!("anim_{n:02}.exr"))).unwrap();
+        let scene = anim.join(format!("anim_{n:04}.xml"));
+        let alone = local_render_with(&scene, 6, &[&format!("frame={n}")], &dir.join("l.exr"));
+        assert!(farm == alone, "anim frame {n}: the farm's result differs from furnace render");
+    }
+    // A frame that does not exist is named, and nothing is submitted.
+    let out = Command::new(BIN)
+        .arg("submit")
+        .arg(anim.join("anim_####.xml"))
+        .args(["--coordinator", &url, "--frames", "1-2"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("frame 2") && e.contains("anim_0002.xml"), "{e}");
+    drop((_w1, _w2, _c));
     std::fs::remove_dir_all(&dir).ok();
 }

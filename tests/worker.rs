@@ -22,6 +22,7 @@ fn lease_once(handed: &AtomicBool, region: Region, deadline_ms: u64) -> Option<L
         epoch: 1,
         settings: JobSettings::default(),
         bundle_hash: String::new(),
+        defines: Default::default(),
         deadline_ms,
     })
 }

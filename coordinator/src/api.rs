@@ -238,6 +238,8 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/v1/jobs/{id}/events"),
     ("get", "/v1/jobs/{id}/preview.png"),
     ("get", "/v1/jobs/{id}/result.exr"),
+    ("get", "/v1/jobs/{id}/frames/{frame}/preview.png"),
+    ("get", "/v1/jobs/{id}/frames/{frame}/result.exr"),
     ("post", "/v1/jobs/{id}/cancel"),
     ("post", "/v1/jobs/{id}/pause"),
     ("post", "/v1/jobs/{id}/resume"),
@@ -274,6 +276,8 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/events", get(job_events))
         .route("/v1/jobs/{id}/preview.png", get(preview))
         .route("/v1/jobs/{id}/result.exr", get(result))
+        .route("/v1/jobs/{id}/frames/{frame}/preview.png", get(frame_preview))
+        .route("/v1/jobs/{id}/frames/{frame}/result.exr", get(frame_result))
         .route("/v1/jobs/{id}/priority", post(priority))
         .route("/v1/jobs/{id}/{action}", post(control))
         .route("/v1/leases", post(lease))
@@ -724,6 +728,22 @@ async fn delete_job(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
     let coord = s.coord.clone();
     blocking(move || crate::state::delete(&coord, &id)).await??;
     Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+/// A frame of a frame-range job: its own job's id.
+fn frame_job(s: &AppState, id: &str, frame: &str) -> Result<String, CoordError> {
+    let n = frame.parse().map_err(|_| CoordError::Invalid(format!("'{frame}' is not a frame number")))?;
+    s.lock().frame_job(id, n)
+}
+
+async fn frame_preview(State(s): State<AppState>, Path((id, frame)): Path<(String, String)>) -> ApiResult {
+    let job = frame_job(&s, &id, &frame)?;
+    preview(State(s), Path(job)).await
+}
+
+async fn frame_result(State(s): State<AppState>, Path((id, frame)): Path<(String, String)>) -> ApiResult {
+    let job = frame_job(&s, &id, &frame)?;
+    result(State(s), Path(job)).await
 }
 
 async fn preview(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult {

@@ -27,6 +27,22 @@ pub enum CoordError {
     Internal(String),
 }
 
+impl CoordError {
+    /// The same error, its message prefixed with `what` (which frame of a job it concerns).
+    pub fn within(self, what: &str) -> CoordError {
+        use CoordError::*;
+        match self {
+            Invalid(m) => Invalid(format!("{what}: {m}")),
+            Unknown(m) => Unknown(format!("{what}: {m}")),
+            Refused(m) => Refused(format!("{what}: {m}")),
+            Unrenderable(m) => Unrenderable(format!("{what}: {m}")),
+            TooLarge(m) => TooLarge(format!("{what}: {m}")),
+            Busy(m) => Busy(format!("{what}: {m}")),
+            Internal(m) => Internal(format!("{what}: {m}")),
+        }
+    }
+}
+
 impl From<std::io::Error> for CoordError {
     fn from(e: std::io::Error) -> Self {
         CoordError::Internal(e.to_string())

@@ -202,6 +202,25 @@ impl Job {
         }
     }
 
+    /// The accumulation to merge into, made the size of the image on first use: a job holds
+    /// no image until its first chunk comes in (the frames of a frame-range job wait their
+    /// turn without one).
+    pub(crate) fn accum_mut(&mut self) -> &mut Accum {
+        let (w, h) = (self.spec.settings.width, self.spec.settings.height);
+        if self.accum.pixels.is_empty() && w as u64 * h as u64 > 0 {
+            let mut full = Accum::new(0, 0, w, h);
+            full.dropped = self.accum.dropped;
+            self.accum = Arc::new(full);
+        }
+        Arc::make_mut(&mut self.accum)
+    }
+
+    /// Bytes the accumulation takes once made (96 a pixel).
+    pub(crate) fn image_bytes(&self) -> usize {
+        let s = &self.spec.settings;
+        s.width as usize * s.height as usize * std::mem::size_of::<furnace_core::film::PixelSum>()
+    }
+
     /// Keeps `status` as the job's final status and lets go of everything else.
     pub(crate) fn release(&mut self, status: JobStatus) {
         let mut empty = Accum::new(0, 0, 0, 0);
@@ -274,6 +293,8 @@ impl Job {
         if self.checkpointing || !(end.is_some() || due) {
             return None;
         }
+        // A job that ends before its first chunk still stores an image of its size.
+        self.accum_mut();
         self.checkpointing = true;
         self.since_checkpoint = 0;
         self.last_checkpoint = Instant::now();
@@ -304,8 +325,16 @@ impl Job {
 
     /// Bytes the job's plan, chunk states and accumulation hold in memory (the larger part of
     /// what a job costs: 96 bytes a pixel).
+    /// A job's image counts from submission (it is made on the first merge); a frame of a
+    /// frame-range job counts only once made (the submission counts the frames that can run
+    /// at once).
     pub(crate) fn held_bytes(&self) -> usize {
-        self.accum.pixels.capacity() * std::mem::size_of::<furnace_core::film::PixelSum>()
+        let made = self.accum.pixels.capacity() * std::mem::size_of::<furnace_core::film::PixelSum>();
+        let image = match self.spec.frame_of {
+            None if self.released.is_none() => made.max(self.image_bytes()),
+            _ => made,
+        };
+        image
             + self.plan.capacity() * std::mem::size_of::<ChunkSpec>()
             + self.chunks.capacity() * std::mem::size_of::<ChunkState>()
             + self.tile_est.capacity() * 8
@@ -444,6 +473,7 @@ impl Job {
             workers: j.workers.keys().cloned().collect(),
             errors: j.errors.clone(),
             plan: j.render_plan.clone(),
+            frames: Vec::new(),
         }
     }
 }

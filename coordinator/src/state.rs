@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 
 use furnace_core::{Accum, LoadLimits, Scene};
 use furnace_proto::{
-    chunk_plan, decode_chunk, encode_chunk, Bundle, JobSettings, JobSpec, JobState, JobStatus, Lease,
-    RenderStats,
+    chunk_plan, decode_chunk, encode_chunk, frame_path, Bundle, FrameOf, FrameStatus, JobSettings, JobSpec,
+    JobState, JobStatus, Lease, RenderStats,
 };
 
 pub use crate::error::CoordError;
@@ -91,6 +91,12 @@ pub struct Coordinator {
     /// leaves their files.
     loading: BTreeMap<u64, Bundle>,
     tickets: u64,
+    /// Frame-range jobs: each one's frames in order, as (frame number, the frame's own job).
+    /// The frames are jobs like any other (stored, leased, merged, restored alike); their
+    /// specs name the job they belong to, from which this is rebuilt at start.
+    groups: BTreeMap<String, Vec<(u32, String)>>,
+    /// Held while a job's scene is loaded for workers in this process ([`load_scene`]).
+    scene_loads: Arc<Mutex<()>>,
 }
 
 fn now_secs() -> u64 {
@@ -140,31 +146,81 @@ struct Loader {
 }
 
 impl Loader {
-    /// A new job for a submitted spec: its bundle laid out, its scene loaded and checked
-    /// (given up at `deadline`).
+    /// The jobs of a submitted spec (its id and one job, or a job per frame of a frame range):
+    /// its bundle laid out, its scenes loaded and checked (given up at `deadline`).
     fn submitted(
         &self,
         spec: JobSpec,
         key: Option<&str>,
         deadline: Option<Instant>,
-    ) -> Result<Job, CoordError> {
+    ) -> Result<(String, Vec<Job>), CoordError> {
         static SUBMISSIONS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let created = now_secs();
         let n = SUBMISSIONS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos());
         let seed = format!("{}-{nanos:?}-{key:?}-{n}-{}", spec.bundle.hash(), std::process::id());
         let id = blake3::hash(seed.as_bytes()).to_hex()[..16].to_string();
-        self.new_job(id, spec, JobState::Queued, created, deadline)
+        if spec.frame_of.is_some() {
+            return Err(CoordError::Invalid(
+                "frame_of is the coordinator's: submit a frame range with \"frames\" instead".into(),
+            ));
+        }
+        let Some(range) = spec.frames else {
+            return Ok((id.clone(), vec![self.new_job(id, spec, JobState::Queued, created, deadline)?]));
+        };
+        range.check().map_err(CoordError::Invalid)?;
+        // Every frame is loaded and checked now; only the first keeps its scene (workers in
+        // this process load the others when they reach them) and its BVH.
+        let later = Loader { keep_scenes: false, ..self.clone() };
+        let mut jobs: Vec<Job> = Vec::new();
+        for n in range.numbers() {
+            let mut defines = spec.defines.clone();
+            defines.insert("frame".into(), n.to_string());
+            let bundle =
+                Bundle { scene: frame_path(&spec.bundle.scene, n), files: spec.bundle.files.clone() };
+            let frame = JobSpec {
+                bundle,
+                settings: spec.settings.clone(),
+                defines,
+                frames: None,
+                frame_of: Some(FrameOf { job: id.clone(), frame: n }),
+            };
+            let loader = if jobs.is_empty() { self } else { &later };
+            let within = |e: CoordError| e.within(&format!("frame {n}"));
+            if deadline.is_some_and(|d| Instant::now() > d) {
+                return Err(within(CoordError::TooLarge("the request's time ran out".into())));
+            }
+            let job = loader
+                .new_job(format!("{id}-{n}"), frame, JobState::Queued, created, deadline)
+                .map_err(within)?;
+            if let Some(first) = jobs.first() {
+                let (a, b) = (&first.spec.settings, &job.spec.settings);
+                if (a.width, a.height, a.spp) != (b.width, b.height, b.spp) {
+                    return Err(within(CoordError::Unrenderable(format!(
+                        "its film is {}x{} at {} spp, frame {}'s {}x{} at {} spp: every frame of a job renders alike",
+                        b.width, b.height, b.spp, range.first, a.width, a.height, a.spp
+                    ))));
+                }
+            }
+            jobs.push(job);
+        }
+        Ok((id, jobs))
     }
 
     /// Loads the bundle's scene from where the store lays it out; errors name files by their
     /// bundle paths, the client's own, not by this host's.
-    fn load_bundle(&self, b: &Bundle, deadline: Option<Instant>) -> Result<Scene, CoordError> {
+    fn load_bundle(
+        &self,
+        b: &Bundle,
+        defines: &BTreeMap<String, String>,
+        deadline: Option<Instant>,
+    ) -> Result<Scene, CoordError> {
         b.validate().map_err(CoordError::Invalid)?;
         // The BVH only for workers in this process: checking and planning need none.
         let limits = LoadLimits { max_bytes: self.max_scene_bytes, deadline, accel: self.keep_scenes };
+        let defines: Vec<(String, String)> = defines.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
         self.store.load_bundle(b, &|dir: &Path| {
-            Scene::load_with(&dir.join(&b.scene), &[], &limits).map_err(|e| {
+            Scene::load_with(&dir.join(&b.scene), &defines, &limits).map_err(|e| {
                 let inside = format!("{}/", dir.display());
                 CoordError::Unrenderable(format!(
                     "the scene cannot be rendered: {}",
@@ -196,7 +252,7 @@ impl Loader {
             }
         }
         let _trim = Trim;
-        let scene = self.load_bundle(&spec.bundle, deadline)?;
+        let scene = self.load_bundle(&spec.bundle, &spec.defines, deadline)?;
         self.job_from_scene(id, spec, state, created, Arc::new(scene))
     }
 
@@ -249,7 +305,8 @@ impl Loader {
         // Noise-target jobs hand out a tile's next pass only once its last one is judged.
         let first = if s.target_rel_error.is_some() { (s.tiles() as usize).min(n) } else { n };
         let tiles = s.tiles() as usize;
-        let mut job = Job::new(id, spec, state, created, plan, Accum::new(0, 0, w, h));
+        // The image is made on the first merge (see `Job::accum_mut`).
+        let mut job = Job::new(id, spec, state, created, plan, Accum::new(0, 0, 0, 0));
         job.queue = (0..first as u32).collect();
         job.tile_est = vec![f64::NAN; tiles];
         job.margin = scene.film.filter.margin();
@@ -269,14 +326,11 @@ impl Loader {
         let id = job.id.clone();
         if let Some(bytes) = self.store.checkpoint(&id) {
             let n = job.plan.len();
-            let limit = furnace_proto::partial_size_limit(job.accum.width, job.accum.height);
+            let (w, h) = (job.spec.settings.width, job.spec.settings.height);
+            let limit = furnace_proto::partial_size_limit(w, h);
             let checked = decode_checkpoint(&bytes, limit).and_then(|(ids, skipped, acc, stats)| {
-                let a = &job.accum;
-                if (acc.x0, acc.y0, acc.width, acc.height) != (a.x0, a.y0, a.width, a.height) {
-                    return Err(format!(
-                        "it covers {}x{}, the job {}x{}",
-                        acc.width, acc.height, a.width, a.height
-                    ));
+                if (acc.x0, acc.y0, acc.width, acc.height) != (0, 0, w, h) {
+                    return Err(format!("it covers {}x{}, the job {w}x{h}", acc.width, acc.height));
                 }
                 if let Some(c) = ids.iter().chain(&skipped).find(|&&c| c as usize >= n) {
                     return Err(format!("it names chunk {c} of {n}"));
@@ -324,7 +378,7 @@ impl Loader {
                     continue;
                 }
             };
-            Arc::make_mut(&mut job.accum).merge(&acc);
+            job.accum_mut().merge(&acc);
             job.merged.insert(chunk);
             job.follow_up(chunk, &acc);
         }
@@ -401,6 +455,8 @@ impl Coordinator {
             row_writer: Arc::new(Mutex::new(())),
             loading: BTreeMap::new(),
             tickets: 0,
+            groups: BTreeMap::new(),
+            scene_loads: Arc::new(Mutex::new(())),
         };
         for (key, id, request) in c.store.keys()? {
             c.keys.insert(key, (id, request));
@@ -450,6 +506,20 @@ impl Coordinator {
                 }
             }
         }
+        for j in c.jobs.values() {
+            if let Some(f) = &j.spec.frame_of {
+                c.groups.entry(f.job.clone()).or_default().push((f.frame, j.id.clone()));
+            }
+        }
+        for frames in c.groups.values_mut() {
+            frames.sort();
+        }
+        // A frame-range job's key is stored with its first frame's row, and names the job.
+        for (id, _) in c.keys.values_mut() {
+            if let Some(f) = c.jobs.get(id.as_str()).and_then(|j| j.spec.frame_of.as_ref()) {
+                *id = f.job.clone();
+            }
+        }
         if let Err(e) = c.write_rows_now() {
             tracing::error!("cannot record the jobs finished at start: {e}");
         }
@@ -493,7 +563,7 @@ impl Coordinator {
     pub fn submit_scene(&mut self, scene: Arc<Scene>, settings: JobSettings) -> Result<String, CoordError> {
         let created = now_secs();
         let id = format!("local-{}", self.jobs.len());
-        let spec = JobSpec { bundle: Bundle { scene: String::new(), files: BTreeMap::new() }, settings };
+        let spec = JobSpec::new(Bundle { scene: String::new(), files: BTreeMap::new() }, settings);
         let mut job =
             self.loader().job_from_scene(id.clone(), spec, JobState::Queued, created, scene.clone())?;
         job.scene = Some(scene);
@@ -501,11 +571,20 @@ impl Coordinator {
         Ok(id)
     }
 
-    /// Adds a new job, its row to be stored.
-    fn insert_job(&mut self, job: Job, key: Option<&str>, request: &str) -> Result<String, CoordError> {
-        let id = job.id.clone();
+    /// Adds a submission's jobs (one, or the frames of a frame-range job `id`), their rows to
+    /// be stored.
+    fn insert_jobs(
+        &mut self,
+        id: String,
+        jobs: Vec<Job>,
+        key: Option<&str>,
+        request: &str,
+    ) -> Result<String, CoordError> {
         let held: usize = self.jobs.values().map(Job::held_bytes).sum();
-        let need = job.held_bytes();
+        // Frames are handed out in order: about two of them hold an image at once.
+        let frames = jobs.iter().filter(|j| j.spec.frame_of.is_some()).count();
+        let need = jobs.iter().map(Job::held_bytes).sum::<usize>()
+            + jobs.first().map_or(0, Job::image_bytes) * frames.min(2);
         if held.saturating_add(need) > self.max_job_bytes {
             return Err(CoordError::Busy(format!(
                 "the coordinator holds {:.2} GB of jobs in memory and this one needs {:.2} GB, over its limit of {:.2} GB (--max-job-memory-gb): wait for jobs to end, or pause or cancel some",
@@ -517,22 +596,52 @@ impl Coordinator {
         if let Some(k) = key {
             self.keys.insert(k.to_string(), (id.clone(), Some(request.to_string())));
         }
-        self.unwritten.insert(id.clone(), (key.map(String::from), request.to_string()));
-        self.dirty.insert(id.clone());
-        self.jobs.insert(id.clone(), job);
+        let mut frames = Vec::new();
+        for (i, job) in jobs.into_iter().enumerate() {
+            // The key is stored with the first row only (keys are unique).
+            let key = if i == 0 { key.map(String::from) } else { None };
+            self.unwritten.insert(job.id.clone(), (key, request.to_string()));
+            self.dirty.insert(job.id.clone());
+            if let Some(f) = &job.spec.frame_of {
+                frames.push((f.frame, job.id.clone()));
+            }
+            self.jobs.insert(job.id.clone(), job);
+        }
+        if !frames.is_empty() {
+            self.groups.insert(id.clone(), frames);
+        }
         Ok(id)
     }
 
-    /// Takes back a submission whose row could not be stored, unless it is stored now;
+    /// The jobs `id` stands for: its frames for a frame-range job, else itself.
+    fn members(&self, id: &str) -> Vec<String> {
+        match self.groups.get(id) {
+            Some(frames) => frames.iter().map(|(_, j)| j.clone()).collect(),
+            None => vec![id.to_string()],
+        }
+    }
+
+    /// Some row of `id`'s jobs is not stored yet.
+    fn unstored(&self, id: &str) -> bool {
+        self.members(id).iter().any(|j| self.unwritten.contains_key(j))
+    }
+
+    /// Takes back a submission whose rows could not be stored, unless they are stored now;
     /// returns whether it did (call it with no rows being written).
     fn unsubmit(&mut self, id: &str) -> bool {
-        if self.unwritten.remove(id).is_none() {
-            return false;
+        let mut taken = false;
+        for j in self.members(id) {
+            if self.unwritten.remove(&j).is_some() {
+                self.jobs.remove(&j);
+                self.dirty.remove(&j);
+                taken = true;
+            }
         }
-        self.jobs.remove(id);
-        self.dirty.remove(id);
-        self.keys.retain(|_, (j, _)| j != id);
-        true
+        if taken {
+            self.groups.remove(id);
+            self.keys.retain(|_, (j, _)| j != id);
+        }
+        taken
     }
 
     /// The row changes not yet stored, as they are now, deletions first (a deleted job's
@@ -689,7 +798,8 @@ impl Coordinator {
     pub fn lease(&mut self, worker: &str, now: Instant) -> Option<Lease> {
         self.expire_leases(now);
         self.seen(worker, now);
-        let mut order: Vec<(std::cmp::Reverse<i32>, u64, String)> = self
+        // The frames of a frame-range job go in frame order.
+        let mut order: Vec<(std::cmp::Reverse<i32>, u64, &str, u32, String)> = self
             .jobs
             .values()
             .filter(|j| matches!(j.state, JobState::Queued | JobState::Running))
@@ -697,10 +807,14 @@ impl Coordinator {
             .filter(|j| !self.unwritten.contains_key(&j.id))
             .filter(|j| j.failures.get(worker).copied().unwrap_or(0) < MAX_FAILURES_PER_WORKER)
             .filter(|j| !j.queue.is_empty())
-            .map(|j| (std::cmp::Reverse(j.spec.settings.priority), j.created, j.id.clone()))
+            .map(|j| {
+                let (group, frame) =
+                    j.spec.frame_of.as_ref().map_or((j.id.as_str(), 0), |f| (&f.job, f.frame));
+                (std::cmp::Reverse(j.spec.settings.priority), j.created, group, frame, j.id.clone())
+            })
             .collect();
         order.sort();
-        let (_, _, id) = order.into_iter().next()?;
+        let (_, _, _, _, id) = order.into_iter().next()?;
         let epoch = self.next_epoch;
         self.next_epoch += 1;
         let deadline = now + self.lease_duration;
@@ -734,6 +848,7 @@ impl Coordinator {
             epoch,
             settings: job.spec.settings.clone(),
             bundle_hash: job.bundle_hash.clone(),
+            defines: job.spec.defines.clone(),
             deadline_ms: ms,
         })
     }
@@ -839,7 +954,7 @@ impl Coordinator {
             tracing::warn!(job, chunk, worker = %worker, "chunk dropped samples: {}", acc.dropped);
         }
         // Copies the accumulation only if a checkpoint of it is still being written.
-        Arc::make_mut(&mut j.accum).merge(acc);
+        j.accum_mut().merge(acc);
         if let Some(s) = stats {
             j.stats.merge(s);
         }
@@ -929,8 +1044,16 @@ impl Coordinator {
         let mut chunks: BTreeMap<String, u64> =
             ["pending", "leased", "done", "skipped"].iter().map(|s| (s.to_string(), 0)).collect();
         let mut pending_chunks = 0;
+        // A frame-range job counts once, in its state.
+        for id in self.groups.keys() {
+            if let Ok(st) = self.status(id) {
+                *jobs.entry(st.state.name().into()).or_default() += 1;
+            }
+        }
         for j in self.jobs.values() {
-            *jobs.entry(j.state.name().into()).or_default() += 1;
+            if j.spec.frame_of.is_none() {
+                *jobs.entry(j.state.name().into()).or_default() += 1;
+            }
             if let Some(st) = &j.released {
                 *chunks.entry("done".into()).or_default() += st.chunks_done.saturating_sub(st.chunks_skipped);
                 *chunks.entry("skipped".into()).or_default() += st.chunks_skipped;
@@ -998,24 +1121,138 @@ impl Coordinator {
         self.jobs.get(id)?.scene.clone()
     }
 
+    /// A job's status; a frame-range job's sums its frames' and lists each.
     pub fn status(&self, id: &str) -> Result<JobStatus, CoordError> {
+        if let Some(frames) = self.groups.get(id) {
+            return self.group_status(id, frames);
+        }
         Ok(self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?.status())
     }
 
-    pub fn job_ids(&self) -> Vec<String> {
-        self.jobs.keys().cloned().collect()
+    fn group_status(&self, id: &str, frames: &[(u32, String)]) -> Result<JobStatus, CoordError> {
+        let all: Vec<(u32, JobStatus)> =
+            frames.iter().filter_map(|(n, j)| Some((*n, self.jobs.get(j)?.status()))).collect();
+        let Some((_, first)) = all.first() else {
+            return Err(CoordError::Unknown(format!("no job '{id}' (none of its frames could be restored)")));
+        };
+        let mut st = JobStatus {
+            id: id.to_string(),
+            chunks_total: 0,
+            chunks_done: 0,
+            chunks_leased: 0,
+            chunks_pending: 0,
+            chunks_skipped: 0,
+            samples_done: 0,
+            samples_total: 0,
+            samples_per_second: 0.0,
+            eta_seconds: None,
+            estimated_rel_mse: None,
+            dropped_samples: Default::default(),
+            render_stats: RenderStats::default(),
+            workers: Vec::new(),
+            errors: Vec::new(),
+            frames: Vec::new(),
+            ..first.clone()
+        };
+        let mut workers = BTreeSet::new();
+        for (n, f) in &all {
+            st.chunks_total += f.chunks_total;
+            st.chunks_done += f.chunks_done;
+            st.chunks_leased += f.chunks_leased;
+            st.chunks_pending += f.chunks_pending;
+            st.chunks_skipped += f.chunks_skipped;
+            st.samples_done += f.samples_done;
+            st.samples_total += f.samples_total;
+            st.samples_per_second += f.samples_per_second;
+            // The worst frame's.
+            st.estimated_rel_mse = match (st.estimated_rel_mse, f.estimated_rel_mse) {
+                (Some(a), Some(b)) => Some(a.max(b)),
+                (a, b) => a.or(b),
+            };
+            st.dropped_samples.add(&f.dropped_samples);
+            st.render_stats.merge(&f.render_stats);
+            workers.extend(f.workers.iter().cloned());
+            st.errors.extend(f.errors.iter().map(|e| format!("frame {n}: {e}")));
+            st.frames.push(FrameStatus {
+                frame: *n,
+                state: f.state,
+                chunks_total: f.chunks_total,
+                chunks_done: f.chunks_done,
+                samples_done: f.samples_done,
+                samples_total: f.samples_total,
+                samples_per_second: f.samples_per_second,
+                eta_seconds: f.eta_seconds,
+                estimated_rel_mse: f.estimated_rel_mse,
+            });
+        }
+        st.errors.drain(..st.errors.len().saturating_sub(MAX_ERRORS));
+        st.workers = workers.into_iter().take(MAX_JOB_WORKERS).collect();
+        let left = st.samples_total - st.samples_done;
+        st.eta_seconds = (st.samples_per_second > 0.0).then(|| left as f64 / st.samples_per_second);
+        let states: Vec<JobState> = all.iter().map(|(_, f)| f.state).collect();
+        let any = |s: JobState| states.contains(&s);
+        st.state = if states.iter().all(|&s| s == JobState::Done) {
+            JobState::Done
+        } else if any(JobState::Cancelled) {
+            JobState::Cancelled
+        } else if states.iter().all(|&s| matches!(s, JobState::Done | JobState::Paused)) {
+            JobState::Paused
+        } else if any(JobState::Running) || any(JobState::Done) {
+            JobState::Running
+        } else {
+            JobState::Queued
+        };
+        Ok(st)
     }
 
-    /// At most `limit` job ids in order, those after `after` if given.
+    /// The job of frame `frame` of the frame-range job `id`.
+    pub fn frame_job(&self, id: &str, frame: u32) -> Result<String, CoordError> {
+        let frames = self.groups.get(id).ok_or_else(|| {
+            let what = if self.jobs.contains_key(id) { "has no frame range" } else { "does not exist" };
+            CoordError::Unknown(format!("job '{id}' {what}"))
+        })?;
+        frames
+            .iter()
+            .find(|(n, _)| *n == frame)
+            .map(|(_, j)| j.clone())
+            .ok_or_else(|| CoordError::Unknown(format!("job '{id}' has no frame {frame}")))
+    }
+
+    /// Every job's id (a frame-range job's, not its frames').
+    pub fn job_ids(&self) -> Vec<String> {
+        self.job_ids_after(None, usize::MAX)
+    }
+
+    /// At most `limit` job ids in order, those after `after` if given (a frame-range job's,
+    /// not its frames').
     pub fn job_ids_after(&self, after: Option<&str>, limit: usize) -> Vec<String> {
         use std::ops::Bound::{Excluded, Unbounded};
-        let from = after.map_or(Unbounded, |a| Excluded(a.to_string()));
-        self.jobs.range((from, Unbounded)).take(limit).map(|(id, _)| id.clone()).collect()
+        let from = || after.map_or(Unbounded, |a| Excluded(a.to_string()));
+        let jobs =
+            self.jobs.range((from(), Unbounded)).filter(|(_, j)| j.spec.frame_of.is_none()).map(|(id, _)| id);
+        let groups = self.groups.range((from(), Unbounded)).map(|(id, _)| id);
+        let mut ids: Vec<String> = jobs.take(limit).chain(groups.take(limit)).cloned().collect();
+        ids.sort();
+        ids.truncate(limit);
+        ids
     }
 
-    /// The merged image so far.
     /// The job's image: developed from the accumulation, or (a finished job's) its result file.
+    /// A frame-range job's is the frame being rendered (the first unfinished one with chunks
+    /// merged), else the last finished one, else its first.
     pub fn picture(&self, id: &str) -> Result<Picture, CoordError> {
+        if let Some(frames) = self.groups.get(id) {
+            let job = |(_, j): &&(u32, String)| self.jobs.get(j);
+            let rendering = frames
+                .iter()
+                .find(|f| job(f).is_some_and(|j| j.state != JobState::Done && j.samples_done > 0));
+            let done = frames.iter().rev().find(|f| job(f).is_some_and(|j| j.state == JobState::Done));
+            let (_, frame) = rendering
+                .or(done)
+                .or(frames.first())
+                .ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
+            return self.picture(frame);
+        }
         let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
         Ok(match j.released {
             Some(_) if j.state == JobState::Paused => Picture::Checkpoint {
@@ -1025,6 +1262,10 @@ impl Coordinator {
                 height: j.spec.settings.height,
             },
             Some(_) => Picture::File(self.store.result_path(id)),
+            // Black until its first chunk.
+            None if j.accum.pixels.is_empty() => {
+                Picture::Developed(Accum::new(0, 0, j.spec.settings.width, j.spec.settings.height).develop())
+            }
             None => Picture::Developed(j.accum.develop()),
         })
     }
@@ -1080,6 +1321,12 @@ impl Coordinator {
     }
 
     pub fn result_path(&self, id: &str) -> Result<PathBuf, CoordError> {
+        if let Some(frames) = self.groups.get(id) {
+            let (a, b) = (frames.first().map_or(0, |f| f.0), frames.last().map_or(0, |f| f.0));
+            return Err(CoordError::Refused(format!(
+                "job {id} renders frames {a} to {b}: each has its result at /v1/jobs/{id}/frames/{{n}}/result.exr"
+            )));
+        }
         let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
         if j.state != JobState::Done {
             return Err(CoordError::Refused(format!("job {id} is not done ({:?})", j.state)));
@@ -1224,6 +1471,34 @@ pub fn set_aside_idle(coord: &Mutex<Coordinator>) {
     }
 }
 
+/// The scene of a job for workers in this process: kept since submission, or loaded now
+/// (outside the lock; the later frames of a frame-range job) and kept until the job ends.
+pub fn load_scene(coord: &Mutex<Coordinator>, id: &str) -> Result<Arc<Scene>, CoordError> {
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(s) = lock().job_scene(id) {
+        return Ok(s);
+    }
+    let turn = lock().scene_loads.clone();
+    // One load at a time: the slots of a worker asking for the same new frame load it once.
+    let _turn = turn.lock().unwrap_or_else(|e| e.into_inner());
+    let (loader, spec) = {
+        let c = lock();
+        let j = c.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
+        if let Some(s) = &j.scene {
+            return Ok(s.clone());
+        }
+        if j.spec.bundle.files.is_empty() {
+            return Err(CoordError::Unknown(format!("job {id} has no scene in this process")));
+        }
+        (c.loader(), j.spec.clone())
+    };
+    let scene = Arc::new(loader.load_bundle(&spec.bundle, &spec.defines, None)?);
+    if let Some(j) = lock().jobs.get_mut(id).filter(|j| j.released.is_none()) {
+        j.scene = Some(scene.clone());
+    }
+    Ok(scene)
+}
+
 /// Loads a job that was set aside again (outside the lock), so that it can be resumed or
 /// cancelled.
 fn bring_back(coord: &Mutex<Coordinator>, id: &str) -> Result<(), CoordError> {
@@ -1260,15 +1535,38 @@ fn bring_back(coord: &Mutex<Coordinator>, id: &str) -> Result<(), CoordError> {
 /// released; its preview stays. A job set aside is loaded again first.
 /// Returns the job's status as the change left it (a request racing it, a delete say, does not
 /// change the answer).
+/// A frame-range job's frames are changed one by one, those finished left as they are.
 pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<JobStatus, CoordError> {
+    let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
+    let (members, group) = {
+        let c = lock();
+        (c.members(id), c.groups.contains_key(id))
+    };
+    let mut changed = 0;
+    let mut refused = None;
+    for job in &members {
+        match control_one(coord, job, action) {
+            Ok(()) => changed += 1,
+            // A finished frame stays finished.
+            Err(CoordError::Refused(e)) if group => refused = Some(e),
+            Err(e) => return Err(e),
+        }
+    }
+    if changed == 0 {
+        if let Some(e) = refused {
+            let st = lock().status(id)?;
+            return Err(CoordError::Refused(format!("job {id} is {}: {e}", st.state.name())));
+        }
+    }
+    let status = lock().status(id)?;
+    sync_rows(coord).map(|()| status)
+}
+
+fn control_one(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<(), CoordError> {
     if matches!(action, "resume" | "cancel") {
         bring_back(coord, id)?;
     }
-    let (snap, status) = {
-        let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
-        let snap = c.control(id, action)?;
-        (snap, c.status(id)?)
-    };
+    let snap = coord.lock().unwrap_or_else(|e| e.into_inner()).control(id, action)?;
     if let Err(e) = write_checkpoints(coord, snap) {
         // The job stays cancelled; its memory goes at the next retry or start (unless it was
         // deleted meanwhile, which is why its folder is gone).
@@ -1276,7 +1574,7 @@ pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<Job
             tracing::error!(job = %id, "cannot store the cancelled job: {e}");
         }
     }
-    sync_rows(coord).map(|()| status)
+    Ok(())
 }
 
 /// Sets a job's priority and stores it, without the lock; returns the job's status as the
@@ -1284,7 +1582,19 @@ pub fn control(coord: &Mutex<Coordinator>, id: &str, action: &str) -> Result<Job
 pub fn set_priority(coord: &Mutex<Coordinator>, id: &str, priority: i32) -> Result<JobStatus, CoordError> {
     let status = {
         let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
-        c.reprioritise(id, priority)?;
+        if c.groups.contains_key(id) {
+            // Its unfinished frames; refused only when none is left.
+            let results: Vec<_> = c.members(id).iter().map(|j| c.reprioritise(j, priority)).collect();
+            if !results.iter().any(Result::is_ok) {
+                let st = c.status(id)?;
+                return Err(CoordError::Refused(format!(
+                    "job {id} is {}: it has no priority",
+                    st.state.name()
+                )));
+            }
+        } else {
+            c.reprioritise(id, priority)?;
+        }
         c.status(id)?
     };
     sync_rows(coord).map(|()| status)
@@ -1297,7 +1607,12 @@ pub fn delete(coord: &Mutex<Coordinator>, id: &str) -> Result<(), CoordError> {
         let mut c = coord.lock().unwrap_or_else(|e| e.into_inner());
         // A delete whose row is still to be removed (an earlier try failed to store it) is
         // tried again, not refused as unknown.
-        if !c.dirty.contains(id) || c.jobs.contains_key(id) {
+        if let Some(frames) = c.groups.remove(id) {
+            for (_, j) in frames {
+                c.forget(&j).ok();
+            }
+            c.keys.retain(|_, (j, _)| j != id);
+        } else if !c.dirty.contains(id) || c.jobs.contains_key(id) {
             c.forget(id)?;
         }
     }
@@ -1343,7 +1658,7 @@ pub fn submit(
             started.elapsed().as_secs_f64()
         )));
     }
-    let job = job?;
+    let (id, jobs) = job?;
     let id = loop {
         // A submission with the same key that finished meanwhile wins, once its row is stored.
         if let Some(id) = keyed(coord, key, &request)? {
@@ -1351,7 +1666,7 @@ pub fn submit(
         }
         let mut c = lock();
         if c.idempotent(key, &request)?.is_none() {
-            break c.insert_job(job, key, &request)?;
+            break c.insert_jobs(id, jobs, key, &request)?;
         }
     };
     // Answered only once its row is stored; if it cannot be, the job is taken back (no
@@ -1373,7 +1688,7 @@ fn keyed(coord: &Mutex<Coordinator>, key: Option<&str>, request: &str) -> Result
         let found = {
             let c = coord.lock().unwrap_or_else(|e| e.into_inner());
             c.idempotent(key, request)?.map(|id| {
-                let pending = c.unwritten.contains_key(&id);
+                let pending = c.unstored(&id);
                 (id, pending)
             })
         };
@@ -1492,9 +1807,9 @@ mod tests {
         let mut c = Coordinator::open(&dir).unwrap();
         let bundle = Bundle { scene: "tiny.xml".into(), files: BTreeMap::new() };
         let settings = JobSettings { spp: 4, tile_size: 4, spp_per_chunk: 1, ..Default::default() };
-        let spec = JobSpec { bundle, settings };
+        let spec = JobSpec::new(bundle, settings);
         let job = c.loader().job_from_scene("j".into(), spec, JobState::Queued, 1, tiny_scene()).unwrap();
-        c.insert_job(job, Some("k"), "h").unwrap();
+        c.insert_jobs(job.id.clone(), vec![job], Some("k"), "h").unwrap();
         c.write_rows_now().unwrap();
         (dir, Arc::new(Mutex::new(c)))
     }
@@ -1548,7 +1863,7 @@ mod tests {
         c.keys.clear();
         let spec = c.jobs["j"].spec.clone();
         let job = c.loader().job_from_scene("j2".into(), spec, JobState::Queued, 2, tiny_scene()).unwrap();
-        c.insert_job(job, Some("k"), "h").unwrap();
+        c.insert_jobs(job.id.clone(), vec![job], Some("k"), "h").unwrap();
         c.reprioritise("j", 3).unwrap();
         c.write_rows_now().unwrap_err();
         assert!(c.unsubmit("j2"));
@@ -1596,7 +1911,7 @@ mod tests {
         while c.lease("w", Instant::now()).is_some() {}
         let spec = c.jobs["j"].spec.clone();
         let job = c.loader().job_from_scene("j2".into(), spec, JobState::Queued, 2, tiny_scene()).unwrap();
-        c.insert_job(job, Some("k2"), "h2").unwrap();
+        c.insert_jobs(job.id.clone(), vec![job], Some("k2"), "h2").unwrap();
         assert!(c.lease("w", Instant::now()).is_none(), "leased before its row is stored");
         assert!(!dir.join("jobs/j2").exists());
         drop(c);

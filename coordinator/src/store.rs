@@ -801,7 +801,7 @@ mod tests {
         let bundle = Bundle { scene: "s.xml".into(), files: Default::default() };
         JobRow {
             id: id.into(),
-            spec: JobSpec { bundle, settings: JobSettings::default() },
+            spec: JobSpec::new(bundle, JobSettings::default()),
             state: JobState::Queued,
             created,
         }

@@ -226,6 +226,110 @@ pub struct JobSpec {
     pub bundle: Bundle,
     #[serde(default)]
     pub settings: JobSettings,
+    /// Scene parameters, as `furnace render -D name=value`: they override the scene's
+    /// `<default>`s when it is loaded.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub defines: BTreeMap<String, String>,
+    /// Render every frame of this range as one job: frame `n` is the bundle's scene with
+    /// `frame` defined as `n` (`-D frame=n`), and with the last run of `#` in its path (if any)
+    /// replaced by `n`, zero-padded to the run's length (`anim_####.xml`: `anim_0007.xml`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames: Option<FrameRange>,
+    /// Set by the coordinator on each frame of a frame-range job (a submission may not).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_of: Option<FrameOf>,
+}
+
+impl JobSpec {
+    /// A one-frame job of `bundle` with `settings`, no scene parameters.
+    pub fn new(bundle: Bundle, settings: JobSettings) -> JobSpec {
+        JobSpec { bundle, settings, defines: BTreeMap::new(), frames: None, frame_of: None }
+    }
+}
+
+/// The most frames one job may have.
+pub const MAX_FRAMES: u64 = 10_000;
+
+/// Frames `first` to `last` (both included), every `step`-th.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameRange {
+    pub first: u32,
+    pub last: u32,
+    #[serde(default = "one")]
+    pub step: u32,
+}
+
+fn one() -> u32 {
+    1
+}
+
+impl FrameRange {
+    /// Parses `A-B[:STEP]` (or a single frame `A`) and checks it.
+    pub fn parse(s: &str) -> Result<FrameRange, String> {
+        let bad =
+            || format!("frames '{s}': expected FIRST-LAST[:STEP] with whole numbers, e.g. 1-250 or 1-250:10");
+        let (range, step) = match s.split_once(':') {
+            Some((r, st)) => (r, st.trim().parse().map_err(|_| bad())?),
+            None => (s, 1),
+        };
+        let (first, last) = match range.split_once('-') {
+            Some((a, b)) => (a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?),
+            None => {
+                let a = range.trim().parse().map_err(|_| bad())?;
+                (a, a)
+            }
+        };
+        let r = FrameRange { first, last, step };
+        r.check()?;
+        Ok(r)
+    }
+
+    /// The range is not empty, its step positive, and it has at most [`MAX_FRAMES`] frames.
+    pub fn check(&self) -> Result<(), String> {
+        if self.step == 0 {
+            return Err("frames: the step must be at least 1".into());
+        }
+        if self.first > self.last {
+            return Err(format!("frames {}-{}: the first frame is after the last", self.first, self.last));
+        }
+        if self.count() > MAX_FRAMES {
+            return Err(format!(
+                "frames {}-{}:{} make {} frames, more than the limit of {MAX_FRAMES} a job",
+                self.first,
+                self.last,
+                self.step,
+                self.count()
+            ));
+        }
+        Ok(())
+    }
+
+    pub fn count(&self) -> u64 {
+        (self.last - self.first) as u64 / self.step.max(1) as u64 + 1
+    }
+
+    /// The frame numbers, in order.
+    pub fn numbers(&self) -> impl Iterator<Item = u32> {
+        (self.first..=self.last).step_by(self.step.max(1) as usize)
+    }
+}
+
+/// Which frame of which job a job is (see [`JobSpec::frames`]).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameOf {
+    pub job: String,
+    pub frame: u32,
+}
+
+/// `path` with its last run of `#` replaced by `frame`, zero-padded to the run's length (a
+/// longer number is written whole); `path` itself when it has no `#`.
+pub fn frame_path(path: &str, frame: u32) -> String {
+    let Some(end) = path.rfind('#') else { return path.to_string() };
+    let start = path[..end].trim_end_matches('#').len();
+    let width = end + 1 - start;
+    format!("{}{frame:0width$}{}", &path[..start], &path[end + 1..])
 }
 
 /// A worker asking for work.
@@ -251,6 +355,9 @@ pub struct Lease {
     pub epoch: u64,
     pub settings: JobSettings,
     pub bundle_hash: String,
+    /// Scene parameters to load the bundle's scene with (`-D name=value`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub defines: BTreeMap<String, String>,
     pub deadline_ms: u64,
 }
 
@@ -374,6 +481,25 @@ pub struct JobStatus {
     pub workers: Vec<String>,
     pub errors: Vec<String>,
     pub plan: String,
+    /// A frame-range job's frames, in order (absent for a one-frame job); the counts above
+    /// are their sums.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub frames: Vec<FrameStatus>,
+}
+
+/// One frame of a frame-range job (`GET /v1/jobs/{id}`'s `frames`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameStatus {
+    pub frame: u32,
+    pub state: JobState,
+    pub chunks_total: u64,
+    pub chunks_done: u64,
+    pub samples_done: u64,
+    pub samples_total: u64,
+    pub samples_per_second: f64,
+    pub eta_seconds: Option<f64>,
+    #[serde(default)]
+    pub estimated_rel_mse: Option<f64>,
 }
 
 /// A worker as the coordinator sees it (`GET /v1/workers`).
@@ -478,6 +604,29 @@ mod tests {
         assert_eq!(plan.len(), 18);
         assert!(plan.windows(2).all(|w| w[0].region.s0 <= w[1].region.s0));
         assert_eq!(plan.iter().map(|c| c.id).collect::<Vec<_>>(), (0..18).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn frame_ranges_parse_and_name_their_files() {
+        let r = FrameRange::parse("1-10:3").unwrap();
+        assert_eq!(r.numbers().collect::<Vec<_>>(), [1, 4, 7, 10]);
+        assert_eq!(r.count(), 4);
+        assert_eq!(FrameRange::parse("5").unwrap().numbers().collect::<Vec<_>>(), [5]);
+        assert_eq!(FrameRange::parse("0-2").unwrap().numbers().collect::<Vec<_>>(), [0, 1, 2]);
+        for (s, fragment) in [
+            ("3-1", "after the last"),
+            ("1-5:0", "at least 1"),
+            ("a-b", "expected FIRST-LAST"),
+            ("-1-5", "expected FIRST-LAST"),
+            ("0-4294967295", "more than the limit of 10000"),
+        ] {
+            let e = FrameRange::parse(s).unwrap_err();
+            assert!(e.contains(fragment), "{s}: {e}");
+        }
+        assert_eq!(frame_path("anim_####.xml", 7), "anim_0007.xml");
+        assert_eq!(frame_path("a#/b_##.xml", 123), "a#/b_123.xml");
+        assert_eq!(frame_path("scene.xml", 3), "scene.xml");
+        assert_eq!(frame_path("#", 42), "42");
     }
 
     #[test]

@@ -6,7 +6,6 @@
 //! The worker knows the coordinator only through [`Link`] and the wire types of
 //! `furnace-proto`; it does not depend on the coordinator crate.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
@@ -211,6 +210,9 @@ fn error_text(r: Response) -> String {
     }
 }
 
+/// Loaded scenes a worker keeps for the leases to come: the frame it renders and the next.
+pub const SCENES_KEPT: usize = 2;
+
 /// A coordinator over HTTP. Scene bundles are cached on disk by hash and in memory once loaded.
 pub struct HttpLink {
     base: String,
@@ -220,7 +222,9 @@ pub struct HttpLink {
     cache: Mutex<(PathBuf, std::fs::File)>,
     /// Its name, for messages (and to make it again if it is removed).
     cache_name: PathBuf,
-    scenes: Mutex<HashMap<String, Arc<Scene>>>,
+    /// The scenes loaded last, by bundle hash and scene parameters, the newest last (at most
+    /// [`SCENES_KEPT`]: the frames of a frame-range job would otherwise pile up).
+    scenes: Mutex<Vec<(String, Arc<Scene>)>>,
     /// How long a lease request may wait at the coordinator for work.
     pub wait: Duration,
     /// A file that holds the Unix time of the last answer from the coordinator (rewritten at
@@ -242,7 +246,7 @@ impl HttpLink {
         let (cache, cache_dir) = private_dir(&cache_name)
             .map_err(|err| WorkerError::Cache { path: cache_name.display().to_string(), err })?;
         let base = base.trim_end_matches('/').to_string();
-        let scenes = Mutex::new(HashMap::new());
+        let scenes = Mutex::new(Vec::new());
         let health_written = Mutex::new(None);
         Ok(HttpLink {
             base,
@@ -347,7 +351,7 @@ impl HttpLink {
     }
 
     /// Fetches the bundle's files (those not cached yet) and loads its scene.
-    fn load(&self, bundle_hash: &str) -> Result<Scene, String> {
+    fn load(&self, bundle_hash: &str, defines: &[(String, String)]) -> Result<Scene, String> {
         if !furnace_proto::is_hash(bundle_hash) {
             return Err(format!("bad bundle hash '{bundle_hash}'"));
         }
@@ -388,7 +392,7 @@ impl HttpLink {
         let limits = furnace_core::LoadLimits { max_bytes: self.max_scene_bytes, ..Default::default() };
         // Errors name files by their paths in the bundle.
         let inside = format!("{}/", dir.display());
-        let scene = Scene::load_with(&dir.join(&bundle.scene), &[], &limits).map_err(|e| {
+        let scene = Scene::load_with(&dir.join(&bundle.scene), defines, &limits).map_err(|e| {
             let e = e.to_string().replace(&inside, "");
             // The limit named is this worker's own.
             e.replace("(--max-scene-memory-mb)", "(this worker's --max-scene-memory-mb)")
@@ -433,11 +437,18 @@ impl Link for HttpLink {
     fn scene(&self, l: &Lease) -> Result<Arc<Scene>, String> {
         // Held while loading, so that two slots do not load the same scene twice.
         let mut scenes = self.scenes.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(s) = scenes.get(&l.bundle_hash) {
-            return Ok(s.clone());
+        let defines: Vec<(String, String)> = l.defines.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        let key = format!("{}{defines:?}", l.bundle_hash);
+        if let Some(i) = scenes.iter().position(|(k, _)| *k == key) {
+            let hit = scenes.remove(i);
+            scenes.push(hit.clone());
+            return Ok(hit.1);
         }
-        let scene = Arc::new(self.load(&l.bundle_hash)?);
-        scenes.insert(l.bundle_hash.clone(), scene.clone());
+        let scene = Arc::new(self.load(&l.bundle_hash, &defines)?);
+        if scenes.len() >= SCENES_KEPT {
+            scenes.remove(0);
+        }
+        scenes.push((key, scene.clone()));
         Ok(scene)
     }
 
