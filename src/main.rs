@@ -69,6 +69,9 @@ struct RenderArgs {
     /// Print the render plan and exit.
     #[arg(long)]
     plan: bool,
+    /// With --plan: print it as JSON.
+    #[arg(long, requires = "plan")]
+    json: bool,
     /// Tile size in pixels (does not change the image).
     #[arg(long, default_value_t = 32)]
     tile: u32,
@@ -174,11 +177,16 @@ fn render(a: RenderArgs) -> Result<()> {
         scene.lights.len(),
         scene.accel.kernel().name()
     );
+    let plan = scene.describe();
     if a.plan {
-        print!("{}", scene.plan);
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(&plan)?);
+        } else {
+            print!("{plan}");
+        }
         return Ok(());
     }
-    eprint!("{}", scene.plan);
+    eprint!("{plan}");
     let spp = a.spp.unwrap_or(scene.spp) as u64;
     if spp == 0 {
         bail!("--spp must be at least 1");

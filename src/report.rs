@@ -10,8 +10,10 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use furnace_core::light::{Light, LightKind};
+use furnace_core::bsdf::Bsdf;
+use furnace_core::light::Light;
 use furnace_core::scene::xml::{Doc, Prop, Value};
+use furnace_core::texture::{FilterType, Texture};
 use furnace_core::{Image, Scene};
 use furnace_proto::JobSettings;
 
@@ -66,24 +68,108 @@ pub struct Row {
     pub estimated: f64,
 }
 
-/// A variant of the scene to measure: a name, a change to the parsed document (before the
-/// scene is built) and a change to the loaded scene.
-struct Technique {
-    name: String,
-    edit: Box<dyn Fn(&mut Doc)>,
-    apply: Box<dyn Fn(&mut Scene)>,
+/// A variant of the scene to measure: the scene as it is, or it with one technique its render
+/// plan uses taken away or changed. Which ablations a scene gets is decided from what it holds
+/// (its techniques, lights, BSDFs and textures), never from the plan's text.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Ablation {
+    AsScene,
+    BsdfSamplingOnly,
+    LightSamplingOnly,
+    NoMisCompensation,
+    UniformEnvironment,
+    DiffuseInsteadOfHair,
+    TextureFilter(FilterType),
+    MaxDepth(u32),
 }
 
-impl Technique {
-    fn after_load(name: impl Into<String>, apply: impl Fn(&mut Scene) + 'static) -> Technique {
-        Technique { name: name.into(), edit: Box::new(|_| {}), apply: Box::new(apply) }
+impl Ablation {
+    /// The scene as it is, then an ablation for each effect it uses that has one.
+    fn for_scene(scene: &Scene) -> Vec<Ablation> {
+        let t = &scene.techniques;
+        let mut all = vec![Ablation::AsScene];
+        if t.mis {
+            all.extend([Ablation::BsdfSamplingOnly, Ablation::LightSamplingOnly]);
+        }
+        let envmaps =
+            || scene.lights.iter().filter_map(|l| if let Light::Envmap(e) = l { Some(e) } else { None });
+        if t.mis && envmaps().any(|e| e.compensated()) {
+            all.push(Ablation::NoMisCompensation);
+        }
+        if envmaps().next().is_some() {
+            all.push(Ablation::UniformEnvironment);
+        }
+        if scene.bsdfs.iter().any(|b| b.any(&|b| matches!(b, Bsdf::Hair(_)))) {
+            all.push(Ablation::DiffuseInsteadOfHair);
+        }
+        if scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| matches!(t, Texture::Bitmap(_))) {
+            all.extend(FilterType::ALL.map(Ablation::TextureFilter));
+        }
+        // max_depth counts path vertices (Mitsuba: -1 unbounded); 2 is direct light only.
+        let depth = scene.integrator.max_depth;
+        all.extend([2u32, 3].into_iter().filter(|&d| depth > d).map(Ablation::MaxDepth));
+        all
     }
-    fn edited(name: impl Into<String>, edit: impl Fn(&mut Doc) + 'static) -> Technique {
-        Technique { name: name.into(), edit: Box::new(edit), apply: Box::new(|_| {}) }
+
+    fn name(&self) -> String {
+        match self {
+            Ablation::AsScene => "path tracer (as the scene says)".into(),
+            Ablation::BsdfSamplingOnly => "BSDF sampling only".into(),
+            Ablation::LightSamplingOnly => "light sampling only".into(),
+            Ablation::NoMisCompensation => "no MIS compensation".into(),
+            Ablation::UniformEnvironment => "environment sampled uniformly".into(),
+            Ablation::DiffuseInsteadOfHair => "diffuse instead of hair".into(),
+            Ablation::TextureFilter(f) => format!("texture filter {}", f.name()),
+            Ablation::MaxDepth(d) => format!("max_depth {d}"),
+        }
     }
+
+    /// Changes to the parsed document, before the scene is built.
+    fn edit(&self, doc: &mut Doc) {
+        match *self {
+            // The same fibres with a diffuse BSDF (reflectance 0.5): what the hair model costs.
+            Ablation::DiffuseInsteadOfHair => doc.edit("bsdf", "hair", |o| {
+                o.plugin = "diffuse".into();
+                o.props.clear();
+                o.children.clear();
+            }),
+            Ablation::TextureFilter(f) => doc.edit("texture", "bitmap", |o| {
+                let pos = o.pos;
+                o.props.retain(|p| p.name != "filter_type");
+                o.props.push(Prop::new("filter_type", Value::Str(f.name().into()), pos));
+            }),
+            _ => {}
+        }
+    }
+
+    /// Changes to the loaded scene.
+    fn apply(&self, s: &mut Scene) {
+        match *self {
+            Ablation::BsdfSamplingOnly => {
+                s.techniques.light_sampling = false;
+                s.techniques.mis = false;
+            }
+            // Light sampling alone must sample every direction: no MIS compensation.
+            Ablation::LightSamplingOnly => {
+                s.techniques.mis = false;
+                set_compensation(s, false);
+            }
+            Ablation::NoMisCompensation => set_compensation(s, false),
+            Ablation::UniformEnvironment => {
+                for l in &mut s.lights {
+                    if let Light::Envmap(e) = l {
+                        Arc::make_mut(e).uniform = true;
+                    }
+                }
+            }
+            Ablation::MaxDepth(d) => s.integrator.max_depth = d,
+            _ => {}
+        }
+    }
+
     fn load(&self, path: &std::path::Path, defines: &[(String, String)]) -> Result<Scene> {
-        let mut scene = Scene::load_edited(path, defines, &*self.edit)?;
-        (self.apply)(&mut scene);
+        let mut scene = Scene::load_edited(path, defines, &|doc| self.edit(doc))?;
+        self.apply(&mut scene);
         Ok(scene)
     }
 }
@@ -95,69 +181,6 @@ fn set_compensation(scene: &mut Scene, on: bool) {
             *e = Arc::new(e.with_compensation(on));
         }
     }
-    scene.plan.mis_compensation = on && scene.plan.mis_compensation;
-}
-
-/// The techniques to compare for this scene: the scene as it is, then an ablation for each
-/// effect its render plan uses that has one.
-fn techniques(scene: &Scene) -> Vec<Technique> {
-    let plan = &scene.plan;
-    let mut t = vec![Technique::after_load("path tracer (as the scene says)", |_| {})];
-    if plan.mis {
-        t.push(Technique::after_load("BSDF sampling only", |s| {
-            s.plan.light_sampling = false;
-            s.plan.mis = false;
-        }));
-        // Light sampling alone must sample every direction: no MIS compensation.
-        t.push(Technique::after_load("light sampling only", |s| {
-            s.plan.mis = false;
-            set_compensation(s, false);
-        }));
-    }
-    if plan.mis_compensation {
-        t.push(Technique::after_load("no MIS compensation", |s| set_compensation(s, false)));
-    }
-    if plan.lights.iter().any(|&(k, _)| k == LightKind::Envmap) {
-        t.push(Technique::after_load("environment sampled uniformly", |s| {
-            for l in &mut s.lights {
-                if let Light::Envmap(e) = l {
-                    Arc::make_mut(e).uniform = true;
-                }
-            }
-        }));
-    }
-    if plan.bsdfs.contains(&"hair") {
-        // The same fibres with a diffuse BSDF (reflectance 0.5): what the hair model costs.
-        t.push(Technique::edited("diffuse instead of hair", |doc| {
-            doc.edit("bsdf", "hair", |o| {
-                o.plugin = "diffuse".into();
-                o.props.clear();
-                o.children.clear();
-            })
-        }));
-    }
-    if plan.textures.iter().any(|l| l.starts_with("bitmap")) {
-        for mode in ["nearest", "bilinear", "trilinear", "ewa"] {
-            t.push(Technique::edited(format!("texture filter {mode}"), move |doc| {
-                doc.edit("texture", "bitmap", |o| {
-                    let pos = o.pos;
-                    o.props.retain(|p| p.name != "filter_type");
-                    o.props.push(Prop::new("filter_type", Value::Str(mode.into()), pos));
-                })
-            }));
-        }
-    }
-    let depth = scene.integrator.max_depth;
-    // max_depth counts path vertices (Mitsuba: -1 unbounded); 2 is direct light only.
-    for d in [2u32, 3] {
-        if depth == u32::MAX || depth > d {
-            t.push(Technique::after_load(format!("max_depth {d}"), move |s| {
-                s.integrator.max_depth = d;
-                s.plan.max_depth = d;
-            }));
-        }
-    }
-    t
 }
 
 pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
@@ -175,7 +198,7 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
         PathBuf::from(format!("report-{stem}"))
     });
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let techs = techniques(&base);
+    let techs = Ablation::for_scene(&base);
     drop(base);
     let reference = match &a.reference {
         Some(p) => {
@@ -231,7 +254,7 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
             }
             let median = |k: usize| median(runs.iter().map(|r| r[k]).collect());
             let row = Row {
-                technique: tech.name.clone(),
+                technique: tech.name(),
                 spp,
                 seconds: runs.iter().map(|r| r[0]).sum::<f64>() / runs.len() as f64,
                 rel_mse: median(1),
@@ -260,7 +283,7 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
             spp *= 2;
         }
     }
-    summary(&rows, &techs[0].name);
+    summary(&rows, &techs[0].name());
     std::fs::write(dir.join("report.csv"), csv(&rows)).context("cannot write report.csv")?;
     crate::plot::error_vs_time(&rows, &dir.join("report.svg"), &dir.join("report.png"))?;
     println!(
@@ -359,4 +382,54 @@ fn csv(rows: &[Row]) -> String {
         );
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use furnace_core::Techniques;
+
+    fn scene(name: &str) -> Scene {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/scenes").join(name);
+        Scene::load(&path, &[]).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// Each scene gets the ablations of what it holds, chosen from its typed techniques, lights,
+    /// BSDFs and textures; each ablation changes what it names and nothing else.
+    #[test]
+    fn ablations_follow_what_the_scene_holds() {
+        use Ablation::*;
+        // cbox: one area light (MIS), no environment, no hair, no bitmap; max_depth 8.
+        assert_eq!(
+            Ablation::for_scene(&scene("cbox.xml")),
+            [AsScene, BsdfSamplingOnly, LightSamplingOnly, MaxDepth(2), MaxDepth(3)]
+        );
+        // hair: fibres under a compensated environment map.
+        let hair = Ablation::for_scene(&scene("hair.xml"));
+        for a in [NoMisCompensation, UniformEnvironment, DiffuseInsteadOfHair] {
+            assert!(hair.contains(&a), "{a:?} missing: {hair:?}");
+        }
+        assert!(!hair.iter().any(|a| matches!(a, TextureFilter(_))));
+        // textured: a bitmap, so every filter.
+        let textured = Ablation::for_scene(&scene("textured.xml"));
+        assert!(FilterType::ALL.iter().all(|&f| textured.contains(&TextureFilter(f))), "{textured:?}");
+        assert!(!textured.contains(&DiffuseInsteadOfHair));
+
+        let mut s = scene("hair.xml");
+        let before = s.techniques;
+        BsdfSamplingOnly.apply(&mut s);
+        assert_eq!(s.techniques, Techniques { light_sampling: false, mis: false, ..before });
+        let mut s = scene("hair.xml");
+        NoMisCompensation.apply(&mut s);
+        assert_eq!(s.techniques, before);
+        assert!(!s.describe().to_string().contains("MIS-compensated"));
+        MaxDepth(2).apply(&mut s);
+        assert_eq!(s.integrator.max_depth, 2);
+        assert!(s.describe().to_string().contains("max_depth 2"));
+        let diffuse = DiffuseInsteadOfHair.load(&s.file, &[]).unwrap();
+        assert!(!diffuse.bsdfs.iter().any(|b| b.any(&|b| matches!(b, Bsdf::Hair(_)))));
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/scenes/textured.xml");
+        let ewa = TextureFilter(FilterType::Ewa).load(&path, &[]).unwrap();
+        assert!(ewa.techniques.footprints && ewa.describe().to_string().contains("EWA"));
+    }
 }

@@ -171,7 +171,8 @@ fn generate_writes_a_seed_class_scene_that_renders() {
     assert_eq!(scene.accel.group_stats(), (1, 30 * 8), "{stdout}");
     assert_eq!((scene.film.width, scene.film.height), (1920, 1080));
     assert!(
-        scene.plan.bsdfs.contains(&"hair") && scene.plan.has_light(furnace_core::light::LightKind::Envmap)
+        scene.bsdfs.iter().any(|b| b.any(&|b| matches!(b, furnace_core::bsdf::Bsdf::Hair(_))))
+            && scene.has_light(furnace_core::light::LightKind::Envmap)
     );
     let out = dir.join("o.exr");
     let o = furnace()

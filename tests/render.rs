@@ -5,7 +5,6 @@ mod common;
 
 use common::*;
 use furnace_core::light::{Light, LightKind};
-use furnace_core::plan::CameraModel;
 use furnace_core::{render_region, Accum, Region};
 
 /// At 64 spp our relative MSE against the Mitsuba reference must be at most 1.5x Mitsuba's own
@@ -191,7 +190,7 @@ fn thin_lens_with_zero_aperture_renders_the_pinhole_bits() {
         .replace("<float name=\"focus_distance\" value=\"4\"/>", "");
     let pinhole = furnace_core::Scene::load_str(&pinhole_xml, &scenes().join("small.xml"), &[]).unwrap();
     let zero = load("small.xml", &[("aperture", "0")]);
-    assert_eq!(zero.plan.camera, CameraModel::Pinhole);
+    assert!(zero.camera.lens.is_none(), "an aperture of 0 is planned as a pinhole");
     let (a, sa) = render(&pinhole, 8, 3);
     let (b, sb) = render(&zero, 8, 3);
     assert!(a == b, "aperture 0 differs from the pinhole");
@@ -199,7 +198,7 @@ fn thin_lens_with_zero_aperture_renders_the_pinhole_bits() {
     assert_eq!(sa, sb);
 
     let lens = load("small.xml", &[]);
-    assert!(matches!(lens.plan.camera, CameraModel::ThinLens { .. }));
+    assert!(lens.camera.lens.is_some());
     let (_, sl) = render(&lens, 2, 3);
     assert_eq!(sl.lens_samples, sl.samples);
 }
@@ -208,24 +207,24 @@ fn thin_lens_with_zero_aperture_renders_the_pinhole_bits() {
 fn stages_absent_from_the_plan_never_run() {
     // cbox: pinhole, one area light, no point light, nothing at infinity.
     let cbox = load("cbox.xml", &[]);
-    assert!(!cbox.plan.has_light(LightKind::Point) && !cbox.plan.escaped_rays_lookup);
+    assert!(!cbox.has_light(LightKind::Point) && !cbox.techniques.escaped_rays_lookup);
     let (_, st) = render(&cbox, 2, 0);
     assert_eq!(st.lens_samples, 0);
     assert_eq!(st.light_samples_of(LightKind::Point), 0);
     assert_eq!(st.light_samples_of(LightKind::Constant), 0);
     assert_eq!(st.escaped_lookups, 0);
     assert!(st.light_samples_of(LightKind::Area) > 0);
-    let text = cbox.plan.to_string();
+    let text = cbox.describe().to_string();
     assert!(text.contains("pinhole") && !text.contains("point") && !text.contains("infinite"), "{text}");
 
     // small: every one of those stages is planned and runs.
     let small = load("small.xml", &[]);
     let (_, st) = render(&small, 2, 0);
     for k in [LightKind::Area, LightKind::Point, LightKind::Constant] {
-        assert!(small.plan.has_light(k) && st.light_samples_of(k) > 0, "{k:?}");
+        assert!(small.has_light(k) && st.light_samples_of(k) > 0, "{k:?}");
     }
     for k in [LightKind::Spot, LightKind::Directional, LightKind::Envmap] {
-        assert!(!small.plan.has_light(k) && st.light_samples_of(k) == 0, "{k:?}");
+        assert!(!small.has_light(k) && st.light_samples_of(k) == 0, "{k:?}");
     }
     assert!(st.escaped_lookups > 0 && st.lens_samples > 0);
 }
@@ -442,7 +441,7 @@ fn texture_footprints_follow_ray_differentials_and_cost_nothing_otherwise() {
     use furnace_core::math::Vec2;
     use furnace_core::render::FOOTPRINT_PIXELS;
     let s = textured_with_filter("ewa");
-    assert!(s.plan.footprints && s.plan.to_string().contains("EWA"));
+    assert!(s.techniques.footprints && s.describe().to_string().contains("EWA"));
     let mut checked = 0;
     for (x, y) in [(128.0f32, 200.0f32), (40.0, 150.0), (200.0, 120.0), (128.0, 100.0)] {
         let pos = Vec2::new(x, y);
@@ -463,7 +462,7 @@ fn texture_footprints_follow_ray_differentials_and_cost_nothing_otherwise() {
     let (_, st) = render(&s, 1, 0);
     assert!(st.footprints > 0);
     for plain in [textured_with_filter("bilinear"), load("cbox.xml", &[])] {
-        assert!(!plain.plan.footprints);
+        assert!(!plain.techniques.footprints);
         assert_eq!(render(&plain, 1, 0).1.footprints, 0);
     }
 }
@@ -589,7 +588,7 @@ fn hair_bsdf_in_a_white_furnace_reads_one() {
         </scene>"#
         );
         let s = load_str(&xml).unwrap();
-        assert!(s.plan.bsdfs.contains(&"hair"));
+        assert!(s.bsdfs.iter().any(|b| matches!(b, furnace_core::bsdf::Bsdf::Hair(_))));
         let img = render(&s, 32, 3).0.develop();
         if expect_one {
             let mean = img.data.iter().map(|p| p.y as f64).sum::<f64>() / img.data.len() as f64;
@@ -630,8 +629,8 @@ fn a_white_fibre_in_a_white_environment_reads_one_on_every_pixel() {
     assert!((mean - 1.0).abs() < 0.01, "mean {mean}");
     assert!(img.data.iter().all(|p| (p.y - 1.0).abs() < 0.15));
 
-    s.plan.light_sampling = false;
-    s.plan.mis = false;
+    s.techniques.light_sampling = false;
+    s.techniques.mis = false;
     let (acc, st) = render(&s, 16, 5);
     assert!(st.bsdf_samples > 0 && st.shadow_rays == 0);
     let img = acc.develop();
@@ -659,7 +658,7 @@ fn fibre_lit_from_above_matches_mitsuba_reference() {
 #[test]
 fn hair_scene_loads_its_bspline_fibres() {
     let s = load("hair.xml", &[]);
-    assert!(s.plan.bsdfs.contains(&"hair"));
+    assert!(s.bsdfs.iter().any(|b| matches!(b, furnace_core::bsdf::Bsdf::Hair(_))));
     let segments: usize = s
         .shapes
         .iter()

@@ -310,7 +310,7 @@ impl Loader {
         job.queue = (0..first as u32).collect();
         job.tile_est = vec![f64::NAN; tiles];
         job.margin = scene.film.filter.margin();
-        job.render_plan = scene.plan.to_string();
+        job.render_plan = scene.describe().to_string();
         job.scene = self.keep_scenes.then_some(scene);
         Ok(job)
     }

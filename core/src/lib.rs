@@ -21,7 +21,7 @@ pub mod texture;
 pub use film::{Accum, Dropped};
 pub use image_io::Image;
 pub use integrator::Stats;
-pub use plan::RenderPlan;
+pub use plan::{PlanDescription, Techniques};
 pub use render::{
     accum_rect, plan_regions, render_image, render_region, render_region_parallel_until, Region,
 };

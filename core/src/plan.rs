@@ -1,26 +1,25 @@
-//! The render plan: which effects this scene needs, derived once at load. The integrator and
-//! camera run only the stages the plan lists; an effect the scene does not use costs nothing.
+//! The render plan: which techniques this scene needs, derived once at load. The integrator and
+//! camera run only the stages the plan switches on; an effect the scene does not use costs
+//! nothing.
+//!
+//! Two parts: [`Techniques`], typed switches that the integrator reads where each acts, and
+//! [`PlanDescription`], what the render does in words, for people (`furnace render --plan`,
+//! the log, a job's status). Settings the scene states have one home elsewhere, which both
+//! read: `max_depth`, `rr_depth` and `hide_emitters` in `Scene::integrator`, the lens in
+//! `Camera::lens` (`None`: a pinhole), MIS compensation in each environment map.
 
 use std::fmt;
 
+use serde::Serialize;
+
 use crate::bsdf::Bsdf;
-use crate::light::LightKind;
+use crate::light::{Light, LightKind};
 use crate::scene::Scene;
 use crate::texture::{FilterType, Texture};
 
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub enum CameraModel {
-    #[default]
-    Pinhole,
-    /// Thin lens with a non-zero aperture (an aperture of 0 is planned as a pinhole).
-    ThinLens { aperture_radius: f32, focus_distance: f32 },
-}
-
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct RenderPlan {
-    pub camera: CameraModel,
-    /// Emitters by kind, with their counts, in a fixed order.
-    pub lights: Vec<(LightKind, usize)>,
+/// The techniques the path tracer runs for a scene.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Techniques {
     /// Next-event estimation: some light can be sampled and some BSDF is not purely specular.
     pub light_sampling: bool,
     /// MIS (power heuristic) between BSDF and light sampling: light sampling of lights that
@@ -28,101 +27,156 @@ pub struct RenderPlan {
     /// but without MIS, emission that BSDF-sampled rays find is left to light sampling (only
     /// reachable as an ablation: derived plans have MIS whenever such lights exist).
     pub mis: bool,
-    /// Light sampling of an environment map leaves directions no brighter than its mean to
-    /// BSDF sampling (MIS compensation; see `light::envmap`).
-    pub mis_compensation: bool,
     /// Rays that leave the scene look up lights at infinity.
     pub escaped_rays_lookup: bool,
-    /// BSDF plugins in use.
-    pub bsdfs: Vec<&'static str>,
-    /// One line per texture lookup kind in use.
-    pub textures: Vec<String>,
     /// Camera rays carry differentials and first hits compute texture footprints (some
     /// texture is `trilinear` or `ewa`).
     pub footprints: bool,
-    pub filter: String,
-    pub max_depth: u32,
-    pub rr_depth: u32,
-    pub hide_emitters: bool,
-    pub sampler: String,
 }
 
-impl RenderPlan {
-    pub fn derive(scene: &Scene) -> RenderPlan {
-        let camera = match scene.camera.lens {
-            Some(l) if l.aperture_radius > 0.0 => {
-                CameraModel::ThinLens { aperture_radius: l.aperture_radius, focus_distance: l.focus_distance }
-            }
-            _ => CameraModel::Pinhole,
-        };
-        let mut lights: Vec<(LightKind, usize)> = LightKind::ALL
-            .iter()
-            .map(|&k| (k, scene.lights.iter().filter(|l| l.kind() == k).count()))
-            .collect();
-        lights.retain(|&(_, n)| n > 0);
-        let any_smooth = scene.bsdfs.iter().any(Bsdf::is_smooth);
-        let light_sampling = !scene.lights.is_empty() && any_smooth;
+impl Techniques {
+    pub fn derive(scene: &Scene) -> Techniques {
+        let light_sampling = !scene.lights.is_empty() && scene.bsdfs.iter().any(Bsdf::is_smooth);
         let mis = light_sampling
             && scene
                 .lights
                 .iter()
                 .any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant | LightKind::Envmap));
+        Techniques {
+            light_sampling,
+            mis,
+            escaped_rays_lookup: !scene.infinite_lights.is_empty(),
+            footprints: scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| t.wants_footprint()),
+        }
+    }
+}
+
+/// Lights of one kind in a scene.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct LightCount {
+    pub kind: &'static str,
+    pub count: usize,
+}
+
+/// What a scene's render does, in words: the scene's settings and the stages its
+/// [`Techniques`] run, in order. `Display` writes the text `furnace render --plan` prints;
+/// it serialises (`furnace render --plan --json`).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct PlanDescription {
+    pub camera: String,
+    pub filter: String,
+    pub sampler: String,
+    /// Emitters by kind, in a fixed order.
+    pub emitters: Vec<LightCount>,
+    /// `None`: unlimited.
+    pub max_depth: Option<u32>,
+    pub rr_depth: u32,
+    pub hide_emitters: bool,
+    pub stages: Vec<String>,
+}
+
+impl PlanDescription {
+    pub fn of(scene: &Scene) -> PlanDescription {
+        let t = &scene.techniques;
+        let camera = match scene.camera.lens {
+            None => "pinhole (no lens samples)".to_string(),
+            Some(l) => format!(
+                "thin lens, aperture radius {}, focus distance {}",
+                l.aperture_radius, l.focus_distance
+            ),
+        };
+        let emitters: Vec<LightCount> = LightKind::ALL
+            .iter()
+            .map(|&k| LightCount {
+                kind: k.name(),
+                count: scene.lights.iter().filter(|l| l.kind() == k).count(),
+            })
+            .filter(|c| c.count > 0)
+            .collect();
+        let mut stages = vec![
+            format!(
+                "camera rays ({})",
+                if scene.camera.lens.is_some() {
+                    "thin lens: 2 lens dimensions per sample"
+                } else {
+                    "pinhole"
+                }
+            ),
+            "intersect (8-wide BVH)".to_string(),
+        ];
+        if t.light_sampling {
+            let kinds: Vec<&str> = emitters.iter().map(|c| c.kind).collect();
+            stages.push(format!("light sampling: {}", kinds.join(", ")));
+        }
+        if t.mis {
+            stages.push("MIS (power heuristic): BSDF sampling x light sampling".into());
+        }
         let mut bsdfs: Vec<&'static str> = Vec::new();
         for b in &scene.bsdfs {
             collect_bsdf_names(b, &mut bsdfs);
         }
-        let mut textures = Vec::new();
+        stages.push(format!("BSDF sampling: {}", bsdfs.join(", ")));
         let emitter_textures = scene.lights.iter().filter_map(|l| match l {
-            crate::light::Light::Area { radiance, .. } => Some(radiance),
+            Light::Area { radiance, .. } => Some(radiance),
             _ => None,
         });
-        for t in scene.bsdfs.iter().flat_map(|b| b.textures()).chain(emitter_textures) {
-            let line = match t {
+        for tex in scene.bsdfs.iter().flat_map(|b| b.textures()).chain(emitter_textures) {
+            let line = match tex {
                 Texture::Bitmap(bt) => {
                     let (w, h) = (bt.bitmap.width, bt.bitmap.height);
                     match bt.filter {
-                        FilterType::Nearest => format!("bitmap {w}x{h} nearest lookup, no footprint"),
-                        FilterType::Bilinear => format!("bitmap {w}x{h} bilinear lookup, no footprint"),
-                        FilterType::Trilinear => {
-                            format!("bitmap {w}x{h} mip-mapped trilinear, footprint from ray differentials")
+                        FilterType::Nearest => {
+                            format!("texture: bitmap {w}x{h} nearest lookup, no footprint")
                         }
+                        FilterType::Bilinear => {
+                            format!("texture: bitmap {w}x{h} bilinear lookup, no footprint")
+                        }
+                        FilterType::Trilinear => format!(
+                            "texture: bitmap {w}x{h} mip-mapped trilinear, footprint from ray differentials"
+                        ),
                         FilterType::Ewa => {
-                            format!("bitmap {w}x{h} mip-mapped EWA, footprint from ray differentials")
+                            format!(
+                                "texture: bitmap {w}x{h} mip-mapped EWA, footprint from ray differentials"
+                            )
                         }
                     }
                 }
-                Texture::Checkerboard(_) => "checkerboard".to_string(),
+                Texture::Checkerboard(_) => "texture: checkerboard".to_string(),
                 Texture::Const(_) => continue,
             };
-            if !textures.contains(&line) {
-                textures.push(line);
+            if !stages.contains(&line) {
+                stages.push(line);
             }
         }
-        let footprints = scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| t.wants_footprint());
-        RenderPlan {
-            footprints,
-            camera,
-            lights,
-            light_sampling,
-            mis,
-            mis_compensation: mis
-                && scene
-                    .lights
-                    .iter()
-                    .any(|l| matches!(l, crate::light::Light::Envmap(e) if e.compensated())),
-            escaped_rays_lookup: !scene.infinite_lights.is_empty(),
-            bsdfs,
-            textures,
-            filter: scene.film.filter.name(),
-            max_depth: scene.integrator.max_depth,
-            rr_depth: scene.integrator.rr_depth,
-            hide_emitters: scene.integrator.hide_emitters,
-            sampler: format!("owen-scrambled sobol (scene names '{}')", scene.sampler_type),
+        if t.escaped_rays_lookup {
+            stages.push("escaped rays: infinite lights".into());
         }
-    }
-
-    pub fn has_light(&self, kind: LightKind) -> bool {
-        self.lights.iter().any(|&(k, _)| k == kind)
+        let envmaps: Vec<bool> = scene
+            .lights
+            .iter()
+            .filter_map(|l| match l {
+                Light::Envmap(e) => Some(e.compensated()),
+                _ => None,
+            })
+            .collect();
+        if !envmaps.is_empty() {
+            stages.push(format!(
+                "environment importance sampling (piecewise-bilinear luminance x solid angle, hierarchical warp{})",
+                if t.mis && envmaps.contains(&true) { ", MIS-compensated" } else { "" }
+            ));
+        }
+        let i = &scene.integrator;
+        stages.push(format!("Russian roulette from depth {}", i.rr_depth));
+        PlanDescription {
+            camera,
+            filter: scene.film.filter.name(),
+            sampler: format!("owen-scrambled sobol (scene names '{}')", scene.sampler_type),
+            emitters,
+            max_depth: (i.max_depth != u32::MAX).then_some(i.max_depth),
+            rr_depth: i.rr_depth,
+            hide_emitters: i.hide_emitters,
+            stages,
+        }
     }
 }
 
@@ -136,56 +190,23 @@ fn collect_bsdf_names(b: &Bsdf, out: &mut Vec<&'static str>) {
     }
 }
 
-impl fmt::Display for RenderPlan {
+impl fmt::Display for PlanDescription {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self.camera {
-            CameraModel::Pinhole => writeln!(f, "camera      pinhole (no lens samples)")?,
-            CameraModel::ThinLens { aperture_radius, focus_distance } => writeln!(
-                f,
-                "camera      thin lens, aperture radius {aperture_radius}, focus distance {focus_distance}"
-            )?,
-        }
+        writeln!(f, "camera      {}", self.camera)?;
         writeln!(f, "pixel       {} filter; sampler {}", self.filter, self.sampler)?;
-        let lights: Vec<String> = self.lights.iter().map(|(k, n)| format!("{} x{n}", k.name())).collect();
+        let lights: Vec<String> = self.emitters.iter().map(|c| format!("{} x{}", c.kind, c.count)).collect();
         writeln!(f, "emitters    {}", if lights.is_empty() { "none".into() } else { lights.join(", ") })?;
         writeln!(
             f,
             "integrator  path, max_depth {}, rr_depth {}{}",
-            if self.max_depth == u32::MAX { "unlimited".to_string() } else { self.max_depth.to_string() },
+            self.max_depth.map_or("unlimited".to_string(), |d| d.to_string()),
             self.rr_depth,
             if self.hide_emitters { ", emitters hidden" } else { "" }
         )?;
         writeln!(f, "stages:")?;
-        writeln!(
-            f,
-            "  - camera rays ({})",
-            match self.camera {
-                CameraModel::Pinhole => "pinhole",
-                CameraModel::ThinLens { .. } => "thin lens: 2 lens dimensions per sample",
-            }
-        )?;
-        writeln!(f, "  - intersect (8-wide BVH)")?;
-        if self.light_sampling {
-            let kinds: Vec<&str> = self.lights.iter().map(|(k, _)| k.name()).collect();
-            writeln!(f, "  - light sampling: {}", kinds.join(", "))?;
+        for s in &self.stages {
+            writeln!(f, "  - {s}")?;
         }
-        if self.mis {
-            writeln!(f, "  - MIS (power heuristic): BSDF sampling x light sampling")?;
-        }
-        writeln!(f, "  - BSDF sampling: {}", self.bsdfs.join(", "))?;
-        for t in &self.textures {
-            writeln!(f, "  - texture: {t}")?;
-        }
-        if self.escaped_rays_lookup {
-            writeln!(f, "  - escaped rays: infinite lights")?;
-        }
-        if self.has_light(LightKind::Envmap) {
-            writeln!(
-                f,
-                "  - environment importance sampling (piecewise-bilinear luminance x solid angle, hierarchical warp{})",
-                if self.mis_compensation { ", MIS-compensated" } else { "" }
-            )?;
-        }
-        writeln!(f, "  - Russian roulette from depth {}", self.rr_depth)
+        Ok(())
     }
 }

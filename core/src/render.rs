@@ -9,7 +9,6 @@ use rayon::prelude::*;
 use crate::film::{Accum, Filter};
 use crate::geometry::RayDifferentials;
 use crate::integrator::{path, Stats};
-use crate::plan::CameraModel;
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
 
@@ -90,20 +89,17 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                 let [fx, fy, lx, ly] = s.next_4d();
                 let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
                 let lens_u = Vec2::new(lx, ly);
-                let camera_ray = |pos: Vec2| match scene.plan.camera {
-                    CameraModel::Pinhole => cam.ray_pinhole(pos),
-                    CameraModel::ThinLens { aperture_radius, focus_distance } => {
-                        let lens = crate::camera::ThinLens { aperture_radius, focus_distance };
-                        cam.ray_thin_lens(&lens, pos, lens_u)
-                    }
+                let camera_ray = |pos: Vec2| match &cam.lens {
+                    None => cam.ray_pinhole(pos),
+                    Some(lens) => cam.ray_thin_lens(lens, pos, lens_u),
                 };
-                if matches!(scene.plan.camera, CameraModel::ThinLens { .. }) {
+                if cam.lens.is_some() {
                     st.lens_samples += 1;
                 }
                 let ray = camera_ray(pos);
                 // Differentials to a neighbour FOOTPRINT_PIXELS away: the pixel filter already
                 // averages many samples, so a full pixel would blur twice.
-                let diff = scene.plan.footprints.then(|| RayDifferentials {
+                let diff = scene.techniques.footprints.then(|| RayDifferentials {
                     rx: camera_ray(pos + Vec2::new(FOOTPRINT_PIXELS, 0.0)),
                     ry: camera_ray(pos + Vec2::new(0.0, FOOTPRINT_PIXELS)),
                 });

@@ -68,6 +68,11 @@ impl Bsdf {
         }
     }
 
+    /// Whether `pred` holds for this BSDF or, for a two-sided one, either side.
+    pub fn any(&self, pred: &dyn Fn(&Bsdf) -> bool) -> bool {
+        pred(self) || matches!(self, Bsdf::TwoSided { front, back } if front.any(pred) || back.any(pred))
+    }
+
     /// Whether the BSDF has a non-delta component, so that light sampling can help.
     pub fn is_smooth(&self) -> bool {
         match self {

@@ -16,7 +16,7 @@ use crate::film::Filter;
 use crate::geometry::{Accel, Disk, Geometry, Instance, Mesh, Shape, Sphere};
 use crate::light::{EnvMap, Light};
 use crate::math::Rgb;
-use crate::plan::RenderPlan;
+use crate::plan::Techniques;
 use crate::texture::{
     to_uv_rows, Bitmap, BitmapTexture, Checkerboard, FilterType, MipMap, Texture, WrapMode,
 };
@@ -259,11 +259,11 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         lights: b.lights,
         infinite_lights,
         accel,
-        plan: RenderPlan::default(),
+        techniques: Techniques::default(),
         assets: b.assets,
         load_estimate: b.budget.peak,
     };
-    scene.plan = RenderPlan::derive(&scene);
+    scene.techniques = Techniques::derive(&scene);
     Ok(scene)
 }
 
@@ -403,7 +403,8 @@ impl Builder<'_> {
             if !(focus_distance > 0.0) {
                 return Err(self.err(doc.pos_of(i, "focus_distance"), "'focus_distance' must be > 0"));
             }
-            Some(ThinLens { aperture_radius, focus_distance })
+            // An aperture of 0 is a pinhole, rendered as one (no lens samples).
+            (aperture_radius > 0.0).then_some(ThinLens { aperture_radius, focus_distance })
         } else {
             None
         };
@@ -540,12 +541,7 @@ impl Builder<'_> {
                     i,
                     "filter_type",
                     FilterType::Bilinear,
-                    &[
-                        ("bilinear", FilterType::Bilinear),
-                        ("nearest", FilterType::Nearest),
-                        ("trilinear", FilterType::Trilinear),
-                        ("ewa", FilterType::Ewa),
-                    ],
+                    &FilterType::ALL.map(|f| (f.name(), f)),
                 )?;
                 let wrap = self.choice(
                     i,

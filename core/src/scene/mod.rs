@@ -10,7 +10,7 @@ use crate::camera::Camera;
 use crate::film::Filter;
 use crate::geometry::{Accel, Interaction, Ray, Shape};
 use crate::light::Light;
-use crate::plan::RenderPlan;
+use crate::plan::{PlanDescription, Techniques};
 
 pub use xml::Pos;
 
@@ -102,7 +102,8 @@ pub struct Scene {
     /// Indices into `lights` of lights at infinity (seen by escaping rays).
     pub infinite_lights: Vec<u32>,
     pub accel: Accel,
-    pub plan: RenderPlan,
+    /// What the integrator runs (see `plan`).
+    pub techniques: Techniques,
     /// Every file the scene reads besides itself (for scene bundles).
     pub assets: Vec<PathBuf>,
     /// The most memory its load was estimated to hold at once (see [`LoadLimits`]): a load
@@ -149,6 +150,16 @@ impl Scene {
         guarded(path, || build::build(&xml::parse_str(text, path, defines)?, &LoadLimits::default()))
     }
 
+    /// What rendering this scene does, in words (the render plan's description).
+    pub fn describe(&self) -> PlanDescription {
+        PlanDescription::of(self)
+    }
+
+    /// Whether the scene has a light of this kind.
+    pub fn has_light(&self, kind: crate::light::LightKind) -> bool {
+        self.lights.iter().any(|l| l.kind() == kind)
+    }
+
     #[inline]
     pub fn intersect(&self, ray: &Ray) -> Option<Interaction> {
         self.accel.intersect(&self.shapes, ray)
@@ -190,7 +201,7 @@ impl std::fmt::Debug for Scene {
             .field("film", &self.film)
             .field("shapes", &self.shapes.len())
             .field("lights", &self.lights.len())
-            .field("plan", &self.plan)
+            .field("techniques", &self.techniques)
             .finish_non_exhaustive()
     }
 }

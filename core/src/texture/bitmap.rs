@@ -16,6 +16,21 @@ pub enum FilterType {
     Ewa,
 }
 
+impl FilterType {
+    pub const ALL: [FilterType; 4] =
+        [FilterType::Nearest, FilterType::Bilinear, FilterType::Trilinear, FilterType::Ewa];
+
+    /// The `filter_type` value that names it in a scene.
+    pub fn name(self) -> &'static str {
+        match self {
+            FilterType::Nearest => "nearest",
+            FilterType::Bilinear => "bilinear",
+            FilterType::Trilinear => "trilinear",
+            FilterType::Ewa => "ewa",
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WrapMode {
     Repeat,
