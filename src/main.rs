@@ -45,6 +45,9 @@ enum Cmd {
     Probe(farm::ProbeArgs),
     /// Write a scene of the seed's class (furry creature, props, sun/sky, thin lens) of any size.
     Generate(generate::GenerateArgs),
+    /// Print every scene plugin Furnace reads, with its parameters (Markdown; the table of
+    /// docs/SCENES.md).
+    Plugins,
 }
 
 #[derive(Args)]
@@ -121,6 +124,10 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Status(a) => farm::status(a),
         Cmd::Probe(a) => farm::probe(a),
         Cmd::Generate(a) => generate::generate(a),
+        Cmd::Plugins => {
+            print!("{}", furnace_core::scene::plugins::markdown());
+            Ok(())
+        }
         Cmd::Report(a) => {
             let defines = parse_defines(&a.define)?;
             report::report(a, &defines)

@@ -97,3 +97,64 @@ pub fn tan_half_fov(fov_deg: f32, axis: &str, width: u32, height: u32) -> Option
         _ => return None,
     })
 }
+
+/// Scene loading: `perspective` and `thinlens` (`fov`, `fov_axis`, `near_clip`, `far_clip`,
+/// `to_world` without scaling; thinlens: `aperture_radius`, `focus_distance`), for a film of
+/// `film`'s size.
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+    film: &crate::scene::FilmSettings,
+) -> crate::scene::build::R<Camera> {
+    let doc = b.doc;
+    let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
+    for (k, axis) in [to_world.x_axis, to_world.y_axis, to_world.z_axis].iter().enumerate() {
+        if (axis.truncate().length() - 1.0).abs() > 1e-3 {
+            return Err(b.err(
+                doc.pos_of(i, "to_world"),
+                format!(
+                    "the sensor's to_world must not scale (axis {k} has length {})",
+                    axis.truncate().length()
+                ),
+            ));
+        }
+    }
+    let fov = doc
+        .float(i, "fov")?
+        .ok_or_else(|| b.err(doc.obj(i).pos, format!("{} needs a 'fov' (degrees)", doc.describe(i))))?;
+    if !(fov > 0.0 && fov < 180.0) {
+        return Err(b.err(doc.pos_of(i, "fov"), format!("'fov' must lie in (0, 180) degrees, found {fov}")));
+    }
+    let axis = doc.string(i, "fov_axis")?.unwrap_or_else(|| "x".into());
+    let tan_half = tan_half_fov(fov, &axis, film.width, film.height).ok_or_else(|| {
+        b.err(
+            doc.pos_of(i, "fov_axis"),
+            format!("unknown fov_axis '{axis}' (expected x, y, diagonal, smaller or larger)"),
+        )
+    })?;
+    let near_clip = b.nonneg_float(i, "near_clip", 0.01)?;
+    if near_clip == 0.0 {
+        return Err(b.err(doc.pos_of(i, "near_clip"), "'near_clip' must be greater than zero"));
+    }
+    let far_clip = doc.float_or(i, "far_clip", 10000.0)?;
+    if !(far_clip > near_clip) {
+        return Err(b.err(doc.pos_of(i, "far_clip"), "far_clip must exceed near_clip"));
+    }
+    let lens = if doc.obj(i).plugin == "thinlens" {
+        let aperture_radius = doc
+            .float(i, "aperture_radius")?
+            .ok_or_else(|| b.err(doc.obj(i).pos, "thinlens needs 'aperture_radius' (world units)"))?;
+        if !(aperture_radius >= 0.0) {
+            return Err(b.err(doc.pos_of(i, "aperture_radius"), "'aperture_radius' must be >= 0"));
+        }
+        let focus_distance = doc.float_or(i, "focus_distance", far_clip)?;
+        if !(focus_distance > 0.0) {
+            return Err(b.err(doc.pos_of(i, "focus_distance"), "'focus_distance' must be > 0"));
+        }
+        // An aperture of 0 is a pinhole, rendered as one (no lens samples).
+        (aperture_radius > 0.0).then_some(ThinLens { aperture_radius, focus_distance })
+    } else {
+        None
+    };
+    Ok(Camera { to_world, film_size: (film.width, film.height), tan_half, near_clip, far_clip, lens })
+}

@@ -316,6 +316,84 @@ impl Accum {
     }
 }
 
+// Scene loading: `hdrfilm` and the pixel filters.
+use crate::scene::build::{Builder, R};
+
+/// `hdrfilm`: `width` (768), `height` (576), the crop window, `pixel_format` (`rgb`),
+/// `component_format` (written as float32), and one `rfilter` (gaussian when absent).
+pub(crate) fn hdrfilm_from(b: &mut Builder, i: usize) -> R<crate::scene::FilmSettings> {
+    let doc = b.doc;
+    let width = b.positive_int(i, "width", 768)?;
+    let height = b.positive_int(i, "height", 576)?;
+    crate::scene::build::check_film_size(width, height).map_err(|e| b.err(doc.obj(i).pos, e))?;
+    let crop_x = doc.int_or(i, "crop_offset_x", 0)?;
+    let crop_y = doc.int_or(i, "crop_offset_y", 0)?;
+    let crop_w = doc.int_or(i, "crop_width", width as i64 - crop_x)?;
+    let crop_h = doc.int_or(i, "crop_height", height as i64 - crop_y)?;
+    if crop_x < 0
+        || crop_y < 0
+        || crop_w <= 0
+        || crop_h <= 0
+        || crop_x + crop_w > width as i64
+        || crop_y + crop_h > height as i64
+    {
+        return Err(b.err(
+            doc.obj(i).pos,
+            format!("crop window ({crop_x}, {crop_y}) size {crop_w} x {crop_h} does not fit in the {width} x {height} film"),
+        ));
+    }
+    if let Some(pf) = doc.string(i, "pixel_format")? {
+        if pf != "rgb" {
+            return Err(b.err(
+                doc.pos_of(i, "pixel_format"),
+                format!("pixel_format '{pf}' is not supported: Furnace writes 'rgb'"),
+            ));
+        }
+    }
+    if let Some(cf) = doc.string(i, "component_format")? {
+        if cf != "float32" && cf != "float16" {
+            return Err(b.err(
+                doc.pos_of(i, "component_format"),
+                format!(
+                    "component_format '{cf}' is not supported (float16 or float32; Furnace writes float32)"
+                ),
+            ));
+        }
+    }
+    let filter = match doc.children(i, "rfilter").as_slice() {
+        [] => Filter::Gaussian { stddev: 0.5 },
+        [(_, f, _)] => b.make_filter(*f)?,
+        [_, (_, _, pos), ..] => return Err(b.err(*pos, "more than one <rfilter>")),
+    };
+    Ok(crate::scene::FilmSettings {
+        width,
+        height,
+        crop_x: crop_x as u32,
+        crop_y: crop_y as u32,
+        crop_width: crop_w as u32,
+        crop_height: crop_h as u32,
+        filter,
+    })
+}
+
+/// `box`: `radius` (0.5).
+pub(crate) fn box_from(b: &mut Builder, i: usize) -> R<Filter> {
+    let radius = b.doc.float_or(i, "radius", 0.5)?;
+    if !(radius > 0.0 && radius <= 8.0) {
+        return Err(b.err(b.doc.pos_of(i, "radius"), "box radius must lie in (0, 8]"));
+    }
+    Ok(Filter::Box { radius })
+}
+
+/// `gaussian`: `stddev` (0.5).
+pub(crate) fn gaussian_from(b: &mut Builder, i: usize) -> R<Filter> {
+    let stddev = b.doc.float_or(i, "stddev", 0.5)?;
+    if !(stddev > 0.0 && stddev <= 2.0) {
+        return Err(b.err(b.doc.pos_of(i, "stddev"), "gaussian stddev must lie in (0, 2]"));
+    }
+    Ok(Filter::Gaussian { stddev })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

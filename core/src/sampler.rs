@@ -76,6 +76,18 @@ impl Deferred {
     }
 }
 
+/// Scene loading: every sampler Mitsuba names (`independent`, `stratified`, `multijitter`,
+/// `orthogonal`, `ldsampler`) is rendered with Furnace's one sequence; each gives
+/// `sample_count` (4) and `seed` (0).
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<(u32, u64)> {
+    let spp = b.positive_int(i, "sample_count", 4)?;
+    let seed = b.doc.int_or(i, "seed", 0)?;
+    Ok((spp, seed as u64))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -102,3 +102,18 @@ pub fn conductor_preset(name: &str) -> Option<(Rgb, Rgb)> {
 }
 
 pub const CONDUCTOR_PRESETS: &[&str] = &["none", "Au", "Ag", "Cu", "Al"];
+
+/// Scene loading: `conductor` and `roughconductor` (`material` preset or `eta` + `k`,
+/// `specular_reflectance`; the rough one's distribution and alpha).
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<super::Bsdf> {
+    let (eta, k) = b.conductor_ior(i)?;
+    Ok(super::Bsdf::Conductor(Conductor {
+        eta,
+        k,
+        specular_reflectance: b.color(i, "specular_reflectance", Rgb::ONE)?,
+        rough: b.roughness(i)?,
+    }))
+}

@@ -177,3 +177,24 @@ impl Dielectric {
         })
     }
 }
+
+/// Scene loading: `dielectric`, `roughdielectric` and `thindielectric` (`int_ior`, `ext_ior`,
+/// `specular_reflectance`, `specular_transmittance`; the rough one's distribution and alpha).
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<super::Bsdf> {
+    let plugin = b.doc.obj(i).plugin.as_str();
+    let int_ior = b.ior(i, "int_ior", "bk7")?;
+    let ext_ior = b.ior(i, "ext_ior", "air")?;
+    if plugin == "roughdielectric" {
+        b.distinct_iors(i, int_ior, ext_ior)?;
+    }
+    Ok(super::Bsdf::Dielectric(Dielectric {
+        eta: int_ior / ext_ior,
+        specular_reflectance: b.color(i, "specular_reflectance", Rgb::ONE)?,
+        specular_transmittance: b.color(i, "specular_transmittance", Rgb::ONE)?,
+        rough: b.roughness(i)?,
+        thin: plugin == "thindielectric",
+    }))
+}

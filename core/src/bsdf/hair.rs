@@ -327,6 +327,43 @@ fn np(phi: f32, p: usize, s: f32, gamma_o: f32, gamma_t: f32, trim: &Trim) -> f3
     trimmed_logistic(d, s, trim)
 }
 
+/// Scene loading: `hair`. Its absorption comes from one of `sigma_a` (with `scale`), the
+/// pigment concentrations (`eumelanin`, `pheomelanin`) or Furnace's own `reflectance`.
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<super::Bsdf> {
+    let doc = b.doc;
+    let eta = b.ior(i, "int_ior", "amber")? / b.ior(i, "ext_ior", "air")?;
+    let beta_m = doc.float_or(i, "longitudinal_roughness", 0.3)?;
+    let beta_n = doc.float_or(i, "azimuthal_roughness", 0.3)?;
+    for (name, v) in [("longitudinal_roughness", beta_m), ("azimuthal_roughness", beta_n)] {
+        if !(v > 0.0 && v <= 1.0) {
+            return Err(b.err(doc.pos_of(i, name), format!("'{name}' must lie in (0, 1], found {v}")));
+        }
+    }
+    let tilt = doc.float_or(i, "scale_tilt", 2.0)?;
+    let pigments = doc.has(i, "eumelanin") || doc.has(i, "pheomelanin");
+    let given = [doc.has(i, "sigma_a"), pigments, doc.has(i, "reflectance")];
+    if given.iter().filter(|&&g| g).count() > 1 {
+        return Err(b.err(
+            doc.obj(i).pos,
+            "hair: give one of sigma_a, the pigments (eumelanin/pheomelanin) or reflectance",
+        ));
+    }
+    let sigma_a = if doc.has(i, "sigma_a") {
+        b.const_color(i, "sigma_a", Rgb::ZERO)? * b.nonneg_float(i, "scale", 1.0)?
+    } else if doc.has(i, "reflectance") {
+        Hair::sigma_a_from_reflectance(b.const_color(i, "reflectance", Rgb::splat(0.5))?, beta_n)
+    } else {
+        Hair::sigma_a_from_melanin(
+            b.nonneg_float(i, "eumelanin", 1.3)?,
+            b.nonneg_float(i, "pheomelanin", 0.2)?,
+        )
+    };
+    Ok(super::Bsdf::Hair(Hair::new(sigma_a, eta, beta_m, beta_n, tilt)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

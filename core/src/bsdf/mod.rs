@@ -9,6 +9,28 @@ pub mod diffuse;
 pub mod hair;
 pub mod microfacet;
 pub mod plastic;
+
+// Scene loading: `diffuse` and `twosided`, as the table in `scene::plugins` names them.
+use crate::scene::build::{Builder, R};
+
+/// `diffuse`: `reflectance` (0.5).
+pub(crate) fn diffuse_from(b: &mut Builder, i: usize) -> R<Bsdf> {
+    Ok(Bsdf::Diffuse { reflectance: b.color(i, "reflectance", Rgb::splat(0.5))? })
+}
+
+/// `twosided`: one nested BSDF for both sides, or a front and a back.
+pub(crate) fn twosided_from(b: &mut Builder, i: usize) -> R<Bsdf> {
+    let doc = b.doc;
+    match doc.children(i, "bsdf").as_slice() {
+        [(_, f, _)] => {
+            let front = b.side(*f)?;
+            Ok(Bsdf::TwoSided { front: front.clone(), back: front })
+        }
+        [(_, f, _), (_, bk, _)] => Ok(Bsdf::TwoSided { front: b.side(*f)?, back: b.side(*bk)? }),
+        _ => Err(b.err(doc.obj(i).pos, "twosided needs one or two nested <bsdf>s")),
+    }
+}
+
 #[cfg(test)]
 mod tests;
 

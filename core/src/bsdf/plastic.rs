@@ -196,3 +196,51 @@ impl Plastic {
         Some(BsdfSample { wi, weight, pdf, delta: false, eta: 1.0 })
     }
 }
+
+/// Scene loading: `plastic` and `roughplastic`. The coating's internal diffuse reflectance
+/// (`fdr_int`) and the weight of sampling the specular lobe are derived here, from the
+/// parameters: the mean specular reflectance over the mean of both reflectances.
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<super::Bsdf> {
+    let doc = b.doc;
+    let int_ior = b.ior(i, "int_ior", "polypropylene")?;
+    let ext_ior = b.ior(i, "ext_ior", "air")?;
+    if doc.obj(i).plugin == "roughplastic" {
+        b.distinct_iors(i, int_ior, ext_ior)?;
+        for name in ["alpha_u", "alpha_v"] {
+            if doc.has(i, name) || doc.named_child_exists(i, name) {
+                return Err(b.err(
+                    doc.pos_of(i, name),
+                    "roughplastic does not support anisotropic roughness (alpha_u, alpha_v): give one 'alpha'",
+                ));
+            }
+        }
+    }
+    let eta = int_ior / ext_ior;
+    let diffuse_reflectance = b.color(i, "diffuse_reflectance", Rgb::splat(0.5))?;
+    let specular_reflectance = b.color(i, "specular_reflectance", Rgb::ONE)?;
+    let d = diffuse_reflectance.mean().element_sum() / 3.0;
+    let s = specular_reflectance.mean().element_sum() / 3.0;
+    let (rough, fdr_int) = match b.roughness(i)? {
+        None => (None, super::microfacet::fresnel_diffuse_reflectance(1.0 / eta)),
+        Some(r) => {
+            // The coating's transmittance is tabulated for one roughness.
+            if !matches!((&r.alpha_u, &r.alpha_v), (Texture::Const(_), Texture::Const(_))) {
+                return Err(b.err(doc.obj(i).pos, "roughplastic: alpha must be a constant, not a texture"));
+            }
+            let (coating, fdr) = RoughCoating::new(r, eta);
+            (Some(coating), fdr)
+        }
+    };
+    Ok(super::Bsdf::Plastic(Plastic {
+        eta,
+        fdr_int,
+        nonlinear: doc.boolean_or(i, "nonlinear", false)?,
+        specular_weight: s / (d + s),
+        diffuse_reflectance,
+        specular_reflectance,
+        rough,
+    }))
+}

@@ -609,6 +609,66 @@ fn solve_quadratic(a: f64, b: f64, c: f64) -> [f64; 2] {
     }
 }
 
+/// Round segments per B-spline span.
+pub(crate) const BSPLINE_STEPS: usize = 8;
+
+/// Scene loading: `linearcurve` and `bsplinecurve` (`filename`: `x y z radius` per line, a
+/// blank line between curves; `to_world` moves the points, not the radii, as in Mitsuba). The
+/// file is read a block at a time, never whole; what parsing holds follows from its lines,
+/// counted first in a streamed pass: each a point (16 bytes, up to twice that in a grown
+/// list), and each curve (at least `min` points) a list in two lists of lists (about 96
+/// bytes).
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+    to_world: &glam::Mat4,
+) -> crate::scene::build::R<super::Geometry> {
+    use crate::scene::build::{count_lines, file_size, CURVE_PARSE, CURVE_POINT_PARSE};
+    let doc = b.doc;
+    let o = doc.obj(i);
+    let bspline = o.plugin == "bsplinecurve";
+    let rel =
+        doc.string(i, "filename")?.ok_or_else(|| b.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
+    let fpos = doc.pos_of(i, "filename");
+    let path = doc.resolve_path(fpos, &rel)?;
+    let size = file_size(&path);
+    let cannot = |e: std::io::Error| doc.err(fpos, format!("cannot read curve file '{rel}': {e}"));
+    let lines = count_lines(&path).map_err(cannot)?;
+    let min = if bspline { 4 } else { 2 };
+    let text = size.min(2 * CURVE_BLOCK as u64);
+    let parse = text.saturating_add(lines.saturating_mul(CURVE_POINT_PARSE + CURVE_PARSE / min));
+    b.budget.charge(&format!("curve file '{rel}'"), parse, 0).map_err(|e| b.err(fpos, e))?;
+    let file = std::fs::File::open(&path).map_err(cannot)?;
+    let mut curves =
+        read_curve_file(file, min as usize).map_err(|e| b.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+    for c in &mut curves {
+        for (p, _) in c.iter_mut() {
+            *p = to_world.transform_point3(*p);
+        }
+    }
+    b.assets.push(path);
+    // A B-spline of n points has n - 3 spans of BSPLINE_STEPS segments; a polyline n - 1
+    // segments.
+    let segments: u64 = curves
+        .iter()
+        .map(|c| if bspline { c.len().saturating_sub(3) * BSPLINE_STEPS } else { c.len().saturating_sub(1) } as u64)
+        .sum();
+    let kept = segments.saturating_mul(std::mem::size_of::<Segment>() as u64);
+    // Meanwhile the parsed points are still held, and the B-spline tessellation's points of
+    // the curves being worked on (a few thousand per thread).
+    let points = parse - text;
+    b.budget
+        .charge(&format!("curve file '{rel}'"), points.saturating_add(kept), kept)
+        .map_err(|e| b.err(fpos, e))?;
+    Ok(super::Geometry::Curves(if bspline {
+        let (c, err) = Curves::bspline(&curves, BSPLINE_STEPS);
+        tracing::debug!("bsplinecurve '{rel}': {} segments, chord error {err:.3e}", c.segments.len());
+        c
+    } else {
+        Curves::linear(&curves)
+    }))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -453,6 +453,54 @@ fn check_ply_counts(bytes: &[u8]) -> Result<(), MeshError> {
     Ok(())
 }
 
+// Scene loading: the mesh shapes.
+use crate::scene::build::{Builder, R};
+
+/// `rectangle` and `cube`, placed by `to_world`.
+pub(crate) fn builtin_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::Geometry> {
+    let mut m = if b.doc.obj(i).plugin == "cube" { Mesh::cube() } else { Mesh::rectangle() };
+    m.transform_flat(to_world);
+    Ok(super::Geometry::Mesh(m))
+}
+
+/// `obj` (`filename`, `face_normals`, `flip_tex_coords` = true) and `ply` (`filename`,
+/// `face_normals`), placed by `to_world`; refused before parsing when it would not fit.
+pub(crate) fn file_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::Geometry> {
+    let doc = b.doc;
+    let o = doc.obj(i);
+    let rel =
+        doc.string(i, "filename")?.ok_or_else(|| b.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
+    let fpos = doc.pos_of(i, "filename");
+    let path = doc.resolve_path(fpos, &rel)?;
+    let face_normals = doc.boolean_or(i, "face_normals", false)?;
+    let parse = if o.plugin == "ply" {
+        ply_load_estimate(&path)
+    } else {
+        crate::scene::build::file_size(&path).saturating_mul(crate::scene::build::PARSE_PER_BYTE)
+    };
+    b.budget.charge(&format!("mesh '{rel}'"), parse, 0).map_err(|e| b.err(fpos, e))?;
+    let loaded = if o.plugin == "obj" {
+        let flip_v = doc.boolean_or(i, "flip_tex_coords", true)?;
+        Mesh::load_obj(&path, flip_v)
+    } else {
+        Mesh::load_ply(&path)
+    };
+    let mut m =
+        loaded.and_then(Mesh::validate).map_err(|e| b.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+    if face_normals {
+        m.normals.clear();
+        m.normals.shrink_to_fit();
+    }
+    let kept = std::mem::size_of_val(m.positions.as_slice())
+        + std::mem::size_of_val(m.normals.as_slice())
+        + std::mem::size_of_val(m.uvs.as_slice())
+        + std::mem::size_of_val(m.tris.as_slice());
+    b.budget.charge(&format!("mesh '{rel}'"), 0, kept as u64).map_err(|e| b.err(fpos, e))?;
+    b.assets.push(path);
+    m.transform(to_world);
+    Ok(super::Geometry::Mesh(m))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -405,6 +405,37 @@ fn intersect_sphere(s: &Sphere, ray: &Ray, tmax: f32) -> Option<f32> {
     }
 }
 
+// Scene loading: `sphere` and `disk`.
+use crate::scene::build::{Builder, R};
+
+/// `sphere`: `center`, `radius`, and a `to_world` that scales uniformly.
+pub(crate) fn sphere_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::Geometry> {
+    use crate::scene::xml::MAX_COORD;
+    let doc = b.doc;
+    let center = doc.point(i, "center")?.unwrap_or(Vec3::ZERO);
+    let radius = doc.float_or(i, "radius", 1.0)?;
+    if !(radius > 0.0 && radius <= MAX_COORD) {
+        return Err(b.err(
+            doc.pos_of(i, "radius"),
+            format!("sphere radius must be > 0 and at most {MAX_COORD:e}, found {radius:e}"),
+        ));
+    }
+    let m = *to_world * Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius));
+    let c = m.transform_point3(Vec3::ZERO);
+    let axes = [m.x_axis.truncate(), m.y_axis.truncate(), m.z_axis.truncate()];
+    let r = axes[0].length();
+    if axes.iter().any(|a| (a.length() - r).abs() > 1e-4 * r) {
+        return Err(b.err(doc.pos_of(i, "to_world"), "sphere to_world must scale uniformly"));
+    }
+    let rot = Mat3::from_cols(axes[0] / r, axes[1] / r, axes[2] / r).transpose();
+    Ok(super::Geometry::Sphere(Sphere { center: c, radius: r, rot }))
+}
+
+/// `disk`: the unit disk placed by `to_world`.
+pub(crate) fn disk_from(_: &mut Builder, _: usize, to_world: &Mat4) -> R<super::Geometry> {
+    Ok(super::Geometry::Disk(Disk::new(*to_world)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

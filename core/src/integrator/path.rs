@@ -172,3 +172,24 @@ pub fn li(
     }
     l
 }
+
+/// Scene loading: `path` (`max_depth` -1 = unlimited, `rr_depth` 5, `hide_emitters`).
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<crate::scene::PathSettings> {
+    let doc = b.doc;
+    let max_depth = doc.int_or(i, "max_depth", -1)?;
+    if max_depth < -1 {
+        return Err(b.err(doc.pos_of(i, "max_depth"), "max_depth must be -1 (unlimited) or >= 0"));
+    }
+    let rr_depth = doc.int_or(i, "rr_depth", 5)?;
+    if rr_depth <= 0 {
+        return Err(b.err(doc.pos_of(i, "rr_depth"), "rr_depth must be > 0"));
+    }
+    Ok(crate::scene::PathSettings {
+        max_depth: if max_depth < 0 { u32::MAX } else { max_depth.min(u32::MAX as i64) as u32 },
+        rr_depth: rr_depth.min(u32::MAX as i64) as u32,
+        hide_emitters: doc.boolean_or(i, "hide_emitters", false)?,
+    })
+}

@@ -521,6 +521,37 @@ fn sample_linear(u: f64, a: f64, b: f64) -> f64 {
     }
 }
 
+/// Scene loading: `envmap` (`filename`, `scale`, `to_world` rotation, Furnace's own
+/// `filter_type` and `mis_compensation`, which is on unless the scene turns it off).
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+    pos: crate::scene::xml::Pos,
+) -> crate::scene::build::R<super::Light> {
+    let doc = b.doc;
+    let rel = doc.string(i, "filename")?.ok_or_else(|| b.err(pos, "envmap needs a 'filename'"))?;
+    let fpos = doc.pos_of(i, "filename");
+    let path = doc.resolve_path(fpos, &rel)?;
+    let scale = b.nonneg_float(i, "scale", 1.0)?;
+    let to_world = b.rotation(i)?;
+    let filter = b.choice(
+        i,
+        "filter_type",
+        FilterType::Bilinear,
+        &[("bilinear", FilterType::Bilinear), ("nearest", FilterType::Nearest)],
+    )?;
+    // Mitsuba's default is false; Furnace compensates unless the scene says not to.
+    let compensate = doc.boolean_or(i, "mis_compensation", true)?;
+    let bitmap =
+        b.bitmap(&path, false, 0).map_err(|e| b.err(fpos, format!("cannot load envmap '{rel}': {e}")))?;
+    let (peak, kept) = EnvMap::table_bytes(bitmap.width, bitmap.height, filter);
+    b.budget
+        .charge("the environment map's sampling tables", peak, kept)
+        .map_err(|e| b.err(fpos, format!("envmap '{rel}': {e}")))?;
+    b.assets.push(path);
+    Ok(super::Light::Envmap(Arc::new(EnvMap::new(Arc::new(bitmap), scale, to_world, filter, compensate))))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -332,6 +332,76 @@ fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Optio
     })
 }
 
+// Scene loading: the emitters that stand alone, and `area`'s radiance (the shape it is nested
+// in makes the light).
+use crate::scene::build::{Builder, R};
+use crate::scene::xml::Pos;
+
+/// `point`: `intensity`, `position` or `to_world`.
+pub(crate) fn point_from(b: &mut Builder, i: usize, pos: Pos) -> R<Light> {
+    let doc = b.doc;
+    let intensity = b.const_color(i, "intensity", Rgb::ONE)?;
+    let position = match (doc.transform(i, "to_world")?, doc.point(i, "position")?) {
+        (Some(_), Some(_)) => {
+            return Err(b.err(pos, "point emitter: give 'position' or 'to_world', not both"))
+        }
+        (Some(m), None) => m.transform_point3(Vec3::ZERO),
+        (None, Some(p)) => p,
+        (None, None) => Vec3::ZERO,
+    };
+    Ok(Light::Point { position, intensity })
+}
+
+/// `constant`: `radiance`.
+pub(crate) fn constant_from(b: &mut Builder, i: usize, _: Pos) -> R<Light> {
+    Ok(Light::Constant { radiance: b.const_color(i, "radiance", Rgb::ONE)? })
+}
+
+/// `directional`: `irradiance`, `direction` or `to_world`.
+pub(crate) fn directional_from(b: &mut Builder, i: usize, pos: Pos) -> R<Light> {
+    let doc = b.doc;
+    let irradiance = b.const_color(i, "irradiance", Rgb::ONE)?;
+    let direction = match (doc.point(i, "direction")?, doc.transform(i, "to_world")?) {
+        (Some(_), Some(_)) => return Err(b.err(pos, "directional: give 'direction' or 'to_world', not both")),
+        (Some(d), None) => d,
+        (None, Some(m)) => m.transform_vector3(Vec3::Z),
+        (None, None) => Vec3::Z,
+    };
+    if direction.length_squared() == 0.0 || !direction.is_finite() {
+        return Err(b.err(pos, "directional: the direction must be a non-zero vector"));
+    }
+    Ok(Light::Directional { direction: direction.normalize(), irradiance })
+}
+
+/// `spot`: `intensity`, `cutoff_angle` (20), `beam_width` (3/4 of the cutoff), `to_world`.
+pub(crate) fn spot_from(b: &mut Builder, i: usize, pos: Pos) -> R<Light> {
+    let doc = b.doc;
+    let intensity = b.const_color(i, "intensity", Rgb::ONE)?;
+    let cutoff = doc.float_or(i, "cutoff_angle", 20.0)?;
+    let beam = doc.float_or(i, "beam_width", cutoff * 0.75)?;
+    if !(cutoff > 0.0 && cutoff <= 180.0 && beam > 0.0 && beam <= cutoff) {
+        return Err(
+            b.err(pos, format!("spot: need 0 < beam_width ({beam}) <= cutoff_angle ({cutoff}) <= 180"))
+        );
+    }
+    let m = doc.transform(i, "to_world")?.unwrap_or(glam::Mat4::IDENTITY);
+    let (cutoff, beam) = (cutoff.to_radians(), beam.to_radians());
+    Ok(Light::Spot {
+        position: m.transform_point3(Vec3::ZERO),
+        axis: m.transform_vector3(Vec3::Z).normalize(),
+        intensity,
+        cos_cutoff: cutoff.cos(),
+        cos_beam: beam.cos(),
+        cutoff,
+        beam,
+    })
+}
+
+/// `area`'s radiance (a colour or a texture); the light is made with its shape.
+pub(crate) fn area_radiance_from(b: &mut Builder, i: usize) -> R<Texture> {
+    b.color(i, "radiance", Rgb::ONE)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

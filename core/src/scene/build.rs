@@ -6,22 +6,20 @@ use std::sync::Arc;
 
 use glam::{Mat3, Mat4, Vec3};
 
+use super::plugins::{self, Make};
 use super::xml::{Doc, Pos, MAX_COORD};
 use super::{FilmSettings, PathSettings, Scene, SceneError};
 use crate::bsdf::conductor::{conductor_preset, CONDUCTOR_PRESETS};
-use crate::bsdf::microfacet::fresnel_diffuse_reflectance;
-use crate::bsdf::{Bsdf, Conductor, Dielectric, Distribution, Plastic, RoughCoating, Roughness};
-use crate::camera::{tan_half_fov, Camera, ThinLens};
+use crate::bsdf::{Bsdf, Distribution, Roughness};
+use crate::camera::Camera;
 use crate::film::Filter;
-use crate::geometry::{Accel, Disk, Geometry, Instance, Mesh, Shape, Sphere};
-use crate::light::{EnvMap, Light};
+use crate::geometry::{Accel, Geometry, Instance, Shape};
+use crate::light::Light;
 use crate::math::Rgb;
 use crate::plan::Techniques;
-use crate::texture::{
-    to_uv_rows, Bitmap, BitmapTexture, Checkerboard, FilterType, MipMap, Texture, WrapMode,
-};
+use crate::texture::{Bitmap, Texture};
 
-type R<T> = Result<T, SceneError>;
+pub(crate) type R<T> = Result<T, SceneError>;
 
 /// How many times an instance may shrink its group along a direction (see `Builder::instance`).
 pub const MAX_INSTANCE_SHRINK: f32 = 1e9;
@@ -58,12 +56,12 @@ pub(crate) const XML_PER_BYTE: u64 = 20;
 const TEXEL_LOAD: u64 = 40;
 /// What a texel keeps: linear RGB, and the pyramid's levels when a filter reads them.
 const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
-const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
+pub(crate) const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
 /// What the OBJ loader holds per byte of its file while parsing.
-const PARSE_PER_BYTE: u64 = 12;
+pub(crate) const PARSE_PER_BYTE: u64 = 12;
 /// What parsing a curve file holds per point (a line), and per curve, besides its text.
-const CURVE_POINT_PARSE: u64 = 32;
-const CURVE_PARSE: u64 = 96;
+pub(crate) const CURVE_POINT_PARSE: u64 = 32;
+pub(crate) const CURVE_PARSE: u64 = 96;
 /// What building the BVH holds at its peak per primitive of one batch (obvhs' scratch), what
 /// it holds per primitive of the scene on top of what it keeps (the Morton order of a batched
 /// build), and what it keeps.
@@ -121,7 +119,7 @@ impl Budget {
 }
 
 /// The lines of the file at `path` (newlines, and one), read a buffer at a time.
-fn count_lines(path: &std::path::Path) -> std::io::Result<u64> {
+pub(crate) fn count_lines(path: &std::path::Path) -> std::io::Result<u64> {
     use std::io::Read;
     let mut f = std::fs::File::open(path)?;
     let mut buf = vec![0u8; 1 << 20];
@@ -137,13 +135,15 @@ fn count_lines(path: &std::path::Path) -> std::io::Result<u64> {
 }
 
 /// The size of the file at `path` (0 if it cannot be read: its loader says why).
-fn file_size(path: &std::path::Path) -> u64 {
+pub(crate) fn file_size(path: &std::path::Path) -> u64 {
     std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
 }
 
-struct Builder<'d> {
-    doc: &'d Doc,
-    budget: Budget,
+/// What building a scene holds: the document, the memory budget, and the parts built so far.
+/// Plugin constructors (see `plugins`) read their parameters through it.
+pub(crate) struct Builder<'d> {
+    pub(crate) doc: &'d Doc,
+    pub(crate) budget: Budget,
     bsdf_ids: HashMap<usize, u32>,
     /// Each BSDF object's value, once built.
     bsdf_values: HashMap<usize, Bsdf>,
@@ -154,7 +154,8 @@ struct Builder<'d> {
     bsdfs: Vec<Bsdf>,
     shapes: Vec<Shape>,
     lights: Vec<Light>,
-    assets: Vec<std::path::PathBuf>,
+    /// Every file the scene reads.
+    pub(crate) assets: Vec<std::path::PathBuf>,
     /// The shapes of each shape group (indices into `shapes`), in the order groups are built.
     groups: Vec<Vec<u32>>,
     /// Each shapegroup object's group and the box of its shapes (in the group's space).
@@ -271,7 +272,7 @@ impl Builder<'_> {
     /// Loads an image within the budget: refused from its header when its texels (at
     /// [`TEXEL_LOAD`] bytes each while decoding) do not fit; each then keeps
     /// [`TEXEL_KEPT`] bytes, and `extra` more.
-    fn bitmap(&mut self, path: &std::path::Path, raw: bool, extra: u64) -> Result<Bitmap, String> {
+    pub(crate) fn bitmap(&mut self, path: &std::path::Path, raw: bool, extra: u64) -> Result<Bitmap, String> {
         self.budget.in_time()?;
         let file = file_size(path);
         // The file is read whole: refused before it is, if it alone does not fit.
@@ -291,19 +292,54 @@ impl Builder<'_> {
         Ok(bitmap)
     }
 
-    fn err(&self, pos: Pos, msg: impl Into<String>) -> SceneError {
+    pub(crate) fn err(&self, pos: Pos, msg: impl Into<String>) -> SceneError {
         self.doc.err(pos, msg)
     }
 
-    fn unsupported_plugin(&self, i: usize, supported: &[&str]) -> SceneError {
-        let o = self.doc.obj(i);
-        self.err(
-            o.pos,
-            format!("unsupported {} plugin '{}' (supported: {})", o.tag, o.plugin, supported.join(", ")),
-        )
+    /// An image read once however many textures use it (by path and `raw`).
+    pub(crate) fn shared_bitmap(&mut self, path: &std::path::Path, raw: bool) -> Result<Arc<Bitmap>, String> {
+        let key = (path.to_path_buf(), raw);
+        if let Some(b) = self.bitmaps.get(&key) {
+            return Ok(b.clone());
+        }
+        let b = Arc::new(self.bitmap(path, raw, 0)?);
+        self.assets.push(path.to_path_buf());
+        self.bitmaps.insert(key, b.clone());
+        Ok(b)
     }
 
-    fn positive_int(&self, i: usize, name: &str, default: i64) -> R<u32> {
+    /// How object `i`'s plugin is built, from the table; a plugin the table does not list is
+    /// refused, naming those its element may be.
+    fn make(&self, i: usize) -> R<Make> {
+        let o = self.doc.obj(i);
+        plugins::find(&o.tag, &o.plugin).map(|p| p.make).ok_or_else(|| {
+            self.err(
+                o.pos,
+                format!(
+                    "unsupported {} plugin '{}' (supported: {})",
+                    o.tag,
+                    o.plugin,
+                    plugins::supported(&o.tag).join(", ")
+                ),
+            )
+        })
+    }
+
+    /// An error for a table entry built the wrong way (a bug in the table, which a test
+    /// rules out).
+    fn miswired(&self, i: usize) -> SceneError {
+        let o = self.doc.obj(i);
+        self.err(o.pos, format!("internal: plugin '{}' is listed under the wrong element", o.plugin))
+    }
+
+    pub(crate) fn make_filter(&mut self, i: usize) -> R<Filter> {
+        match self.make(i)? {
+            Make::Filter(f) => f(self, i),
+            _ => Err(self.miswired(i)),
+        }
+    }
+
+    pub(crate) fn positive_int(&self, i: usize, name: &str, default: i64) -> R<u32> {
         let v = self.doc.int_or(i, name, default)?;
         if v <= 0 || v > u32::MAX as i64 {
             return Err(self.err(
@@ -314,7 +350,7 @@ impl Builder<'_> {
         Ok(v as u32)
     }
 
-    fn nonneg_float(&self, i: usize, name: &str, default: f32) -> R<f32> {
+    pub(crate) fn nonneg_float(&self, i: usize, name: &str, default: f32) -> R<f32> {
         let v = self.doc.float_or(i, name, default)?;
         if !(v >= 0.0) || !v.is_finite() {
             return Err(self.err(
@@ -327,10 +363,7 @@ impl Builder<'_> {
 
     fn sensor(&mut self, i: usize) -> R<(Camera, FilmSettings, u32, u64, String)> {
         let doc = self.doc;
-        let plugin = doc.obj(i).plugin.clone();
-        if plugin != "perspective" && plugin != "thinlens" {
-            return Err(self.unsupported_plugin(i, &["perspective", "thinlens"]));
-        }
+        let Make::Sensor(camera) = self.make(i)? else { return Err(self.miswired(i)) };
         let film = match doc.children(i, "film").as_slice() {
             [] => FilmSettings {
                 width: 768,
@@ -341,169 +374,36 @@ impl Builder<'_> {
                 crop_height: 576,
                 filter: Filter::Gaussian { stddev: 0.5 },
             },
-            [(_, f, _)] => self.film(*f)?,
+            [(_, f, _)] => match self.make(*f)? {
+                Make::Film(film) => film(self, *f)?,
+                _ => return Err(self.miswired(*f)),
+            },
             [_, (_, _, pos), ..] => return Err(self.err(*pos, "more than one <film> in the sensor")),
         };
         let (spp, seed, sampler_type) = match doc.children(i, "sampler").as_slice() {
             [] => (4, 0, "independent".to_string()),
-            [(_, s, _)] => {
-                let known = ["independent", "stratified", "multijitter", "orthogonal", "ldsampler"];
-                if !known.contains(&doc.obj(*s).plugin.as_str()) {
-                    return Err(self.unsupported_plugin(*s, &known));
+            [(_, s, _)] => match self.make(*s)? {
+                Make::Sampler(sampler) => {
+                    let (spp, seed) = sampler(self, *s)?;
+                    (spp, seed, doc.obj(*s).plugin.clone())
                 }
-                let spp = self.positive_int(*s, "sample_count", 4)?;
-                let seed = doc.int_or(*s, "seed", 0)?;
-                (spp, seed as u64, doc.obj(*s).plugin.clone())
-            }
+                _ => return Err(self.miswired(*s)),
+            },
             [_, (_, _, pos), ..] => return Err(self.err(*pos, "more than one <sampler> in the sensor")),
         };
-        let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
-        for (k, axis) in [to_world.x_axis, to_world.y_axis, to_world.z_axis].iter().enumerate() {
-            if (axis.truncate().length() - 1.0).abs() > 1e-3 {
-                return Err(self.err(
-                    doc.pos_of(i, "to_world"),
-                    format!(
-                        "the sensor's to_world must not scale (axis {k} has length {})",
-                        axis.truncate().length()
-                    ),
-                ));
-            }
-        }
-        let fov = doc.float(i, "fov")?.ok_or_else(|| {
-            self.err(doc.obj(i).pos, format!("{} needs a 'fov' (degrees)", doc.describe(i)))
-        })?;
-        if !(fov > 0.0 && fov < 180.0) {
-            return Err(
-                self.err(doc.pos_of(i, "fov"), format!("'fov' must lie in (0, 180) degrees, found {fov}"))
-            );
-        }
-        let axis = doc.string(i, "fov_axis")?.unwrap_or_else(|| "x".into());
-        let tan_half = tan_half_fov(fov, &axis, film.width, film.height).ok_or_else(|| {
-            self.err(
-                doc.pos_of(i, "fov_axis"),
-                format!("unknown fov_axis '{axis}' (expected x, y, diagonal, smaller or larger)"),
-            )
-        })?;
-        let near_clip = self.nonneg_float(i, "near_clip", 0.01)?;
-        if near_clip == 0.0 {
-            return Err(self.err(doc.pos_of(i, "near_clip"), "'near_clip' must be greater than zero"));
-        }
-        let far_clip = doc.float_or(i, "far_clip", 10000.0)?;
-        if !(far_clip > near_clip) {
-            return Err(self.err(doc.pos_of(i, "far_clip"), "far_clip must exceed near_clip"));
-        }
-        let lens = if plugin == "thinlens" {
-            let aperture_radius = doc
-                .float(i, "aperture_radius")?
-                .ok_or_else(|| self.err(doc.obj(i).pos, "thinlens needs 'aperture_radius' (world units)"))?;
-            if !(aperture_radius >= 0.0) {
-                return Err(self.err(doc.pos_of(i, "aperture_radius"), "'aperture_radius' must be >= 0"));
-            }
-            let focus_distance = doc.float_or(i, "focus_distance", far_clip)?;
-            if !(focus_distance > 0.0) {
-                return Err(self.err(doc.pos_of(i, "focus_distance"), "'focus_distance' must be > 0"));
-            }
-            // An aperture of 0 is a pinhole, rendered as one (no lens samples).
-            (aperture_radius > 0.0).then_some(ThinLens { aperture_radius, focus_distance })
-        } else {
-            None
-        };
-        let camera =
-            Camera { to_world, film_size: (film.width, film.height), tan_half, near_clip, far_clip, lens };
+        let camera = camera(self, i, &film)?;
         Ok((camera, film, spp, seed, sampler_type))
     }
 
-    fn film(&mut self, i: usize) -> R<FilmSettings> {
-        let doc = self.doc;
-        if doc.obj(i).plugin != "hdrfilm" {
-            return Err(self.unsupported_plugin(i, &["hdrfilm"]));
-        }
-        let width = self.positive_int(i, "width", 768)?;
-        let height = self.positive_int(i, "height", 576)?;
-        check_film_size(width, height).map_err(|e| self.err(doc.obj(i).pos, e))?;
-        let crop_x = doc.int_or(i, "crop_offset_x", 0)?;
-        let crop_y = doc.int_or(i, "crop_offset_y", 0)?;
-        let crop_w = doc.int_or(i, "crop_width", width as i64 - crop_x)?;
-        let crop_h = doc.int_or(i, "crop_height", height as i64 - crop_y)?;
-        if crop_x < 0
-            || crop_y < 0
-            || crop_w <= 0
-            || crop_h <= 0
-            || crop_x + crop_w > width as i64
-            || crop_y + crop_h > height as i64
-        {
-            return Err(self.err(
-                doc.obj(i).pos,
-                format!("crop window ({crop_x}, {crop_y}) size {crop_w} x {crop_h} does not fit in the {width} x {height} film"),
-            ));
-        }
-        if let Some(pf) = doc.string(i, "pixel_format")? {
-            if pf != "rgb" {
-                return Err(self.err(
-                    doc.pos_of(i, "pixel_format"),
-                    format!("pixel_format '{pf}' is not supported: Furnace writes 'rgb'"),
-                ));
-            }
-        }
-        if let Some(cf) = doc.string(i, "component_format")? {
-            if cf != "float32" && cf != "float16" {
-                return Err(self.err(doc.pos_of(i, "component_format"), format!("component_format '{cf}' is not supported (float16 or float32; Furnace writes float32)")));
-            }
-        }
-        let filter = match doc.children(i, "rfilter").as_slice() {
-            [] => Filter::Gaussian { stddev: 0.5 },
-            [(_, f, _)] => match doc.obj(*f).plugin.as_str() {
-                "box" => {
-                    let radius = doc.float_or(*f, "radius", 0.5)?;
-                    if !(radius > 0.0 && radius <= 8.0) {
-                        return Err(self.err(doc.pos_of(*f, "radius"), "box radius must lie in (0, 8]"));
-                    }
-                    Filter::Box { radius }
-                }
-                "gaussian" => {
-                    let stddev = doc.float_or(*f, "stddev", 0.5)?;
-                    if !(stddev > 0.0 && stddev <= 2.0) {
-                        return Err(self.err(doc.pos_of(*f, "stddev"), "gaussian stddev must lie in (0, 2]"));
-                    }
-                    Filter::Gaussian { stddev }
-                }
-                _ => return Err(self.unsupported_plugin(*f, &["box", "gaussian"])),
-            },
-            [_, (_, _, pos), ..] => return Err(self.err(*pos, "more than one <rfilter>")),
-        };
-        Ok(FilmSettings {
-            width,
-            height,
-            crop_x: crop_x as u32,
-            crop_y: crop_y as u32,
-            crop_width: crop_w as u32,
-            crop_height: crop_h as u32,
-            filter,
-        })
-    }
-
     fn integrator(&mut self, i: usize) -> R<PathSettings> {
-        let doc = self.doc;
-        if doc.obj(i).plugin != "path" {
-            return Err(self.unsupported_plugin(i, &["path"]));
+        match self.make(i)? {
+            Make::Integrator(f) => f(self, i),
+            _ => Err(self.miswired(i)),
         }
-        let max_depth = doc.int_or(i, "max_depth", -1)?;
-        if max_depth < -1 {
-            return Err(self.err(doc.pos_of(i, "max_depth"), "max_depth must be -1 (unlimited) or >= 0"));
-        }
-        let rr_depth = doc.int_or(i, "rr_depth", 5)?;
-        if rr_depth <= 0 {
-            return Err(self.err(doc.pos_of(i, "rr_depth"), "rr_depth must be > 0"));
-        }
-        Ok(PathSettings {
-            max_depth: if max_depth < 0 { u32::MAX } else { max_depth.min(u32::MAX as i64) as u32 },
-            rr_depth: rr_depth.min(u32::MAX as i64) as u32,
-            hide_emitters: doc.boolean_or(i, "hide_emitters", false)?,
-        })
     }
 
     /// A colour parameter: `<rgb>`/`<float>`, or a nested/referenced `<texture>`.
-    fn color(&mut self, i: usize, name: &str, default: Rgb) -> R<Texture> {
+    pub(crate) fn color(&mut self, i: usize, name: &str, default: Rgb) -> R<Texture> {
         if self.doc.has(i, name) {
             let c = self.doc.rgb(i, name)?.unwrap_or(default);
             if !c.is_finite() {
@@ -529,58 +429,9 @@ impl Builder<'_> {
         if let Some(t) = self.textures.get(&i) {
             return Ok(t.clone());
         }
-        let doc = self.doc;
-        let o = doc.obj(i);
-        let tex = match o.plugin.as_str() {
-            "bitmap" => {
-                let rel =
-                    doc.string(i, "filename")?.ok_or_else(|| self.err(o.pos, "bitmap needs a 'filename'"))?;
-                let path = doc.resolve_path(doc.pos_of(i, "filename"), &rel)?;
-                let raw = doc.boolean_or(i, "raw", false)?;
-                let filter = self.choice(
-                    i,
-                    "filter_type",
-                    FilterType::Bilinear,
-                    &FilterType::ALL.map(|f| (f.name(), f)),
-                )?;
-                let wrap = self.choice(
-                    i,
-                    "wrap_mode",
-                    WrapMode::Repeat,
-                    &[("repeat", WrapMode::Repeat), ("mirror", WrapMode::Mirror), ("clamp", WrapMode::Clamp)],
-                )?;
-                let to_uv = to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY));
-                let key = (path.clone(), raw);
-                let fpos = doc.pos_of(i, "filename");
-                let bitmap = match self.bitmaps.get(&key) {
-                    Some(b) => b.clone(),
-                    None => {
-                        let b = Arc::new(
-                            self.bitmap(&path, raw, 0)
-                                .map_err(|e| self.err(fpos, format!("cannot load texture '{rel}': {e}")))?,
-                        );
-                        self.assets.push(path.clone());
-                        self.bitmaps.insert(key, b.clone());
-                        b
-                    }
-                };
-                // The pyramid is built only for the filters that read it.
-                let mip = matches!(filter, FilterType::Trilinear | FilterType::Ewa);
-                if mip {
-                    let texels = (bitmap.width * bitmap.height) as u64;
-                    let what = format!("the mipmap of texture '{rel}'");
-                    let cost = texels.saturating_mul(MIP_TEXEL);
-                    self.budget.charge(&what, cost, cost).map_err(|e| self.err(fpos, e))?;
-                }
-                let mip = mip.then(|| MipMap::build(&bitmap));
-                Texture::Bitmap(Arc::new(BitmapTexture { bitmap, filter, wrap, to_uv, mip }))
-            }
-            "checkerboard" => Texture::Checkerboard(Arc::new(Checkerboard {
-                color0: self.const_color(i, "color0", Rgb::splat(0.4))?,
-                color1: self.const_color(i, "color1", Rgb::splat(0.2))?,
-                to_uv: to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(Mat4::IDENTITY)),
-            })),
-            _ => return Err(self.unsupported_plugin(i, &["bitmap", "checkerboard"])),
+        let tex = match self.make(i)? {
+            Make::Texture(f) => f(self, i)?,
+            _ => return Err(self.miswired(i)),
         };
         self.textures.insert(i, tex.clone());
         Ok(tex)
@@ -617,7 +468,7 @@ impl Builder<'_> {
 
     /// The side of a `twosided` BSDF: one nested inside it is only ever seen from its front
     /// (each side is flipped to the front first), so its front serves.
-    fn side(&mut self, i: usize) -> R<Box<Bsdf>> {
+    pub(crate) fn side(&mut self, i: usize) -> R<Box<Bsdf>> {
         Ok(Box::new(match self.bsdf_value(i)? {
             Bsdf::TwoSided { front, .. } => *front,
             b => b,
@@ -625,146 +476,15 @@ impl Builder<'_> {
     }
 
     fn bsdf_made(&mut self, i: usize) -> R<Bsdf> {
-        let doc = self.doc;
-        Ok(match doc.obj(i).plugin.as_str() {
-            "diffuse" => Bsdf::Diffuse { reflectance: self.color(i, "reflectance", Rgb::splat(0.5))? },
-            "twosided" => {
-                let nested = doc.children(i, "bsdf");
-                match nested.as_slice() {
-                    [(_, f, _)] => {
-                        let front = self.side(*f)?;
-                        Bsdf::TwoSided { front: front.clone(), back: front }
-                    }
-                    [(_, f, _), (_, bk, _)] => {
-                        Bsdf::TwoSided { front: self.side(*f)?, back: self.side(*bk)? }
-                    }
-                    _ => return Err(self.err(doc.obj(i).pos, "twosided needs one or two nested <bsdf>s")),
-                }
-            }
-            "conductor" | "roughconductor" => {
-                let (eta, k) = self.conductor_ior(i)?;
-                Bsdf::Conductor(Conductor {
-                    eta,
-                    k,
-                    specular_reflectance: self.color(i, "specular_reflectance", Rgb::ONE)?,
-                    rough: self.roughness(i)?,
-                })
-            }
-            "dielectric" | "roughdielectric" | "thindielectric" => {
-                let int_ior = self.ior(i, "int_ior", "bk7")?;
-                let ext_ior = self.ior(i, "ext_ior", "air")?;
-                if doc.obj(i).plugin == "roughdielectric" {
-                    self.distinct_iors(i, int_ior, ext_ior)?;
-                }
-                Bsdf::Dielectric(Dielectric {
-                    eta: int_ior / ext_ior,
-                    specular_reflectance: self.color(i, "specular_reflectance", Rgb::ONE)?,
-                    specular_transmittance: self.color(i, "specular_transmittance", Rgb::ONE)?,
-                    rough: self.roughness(i)?,
-                    thin: doc.obj(i).plugin == "thindielectric",
-                })
-            }
-            "hair" => {
-                let eta = self.ior(i, "int_ior", "amber")? / self.ior(i, "ext_ior", "air")?;
-                let beta_m = doc.float_or(i, "longitudinal_roughness", 0.3)?;
-                let beta_n = doc.float_or(i, "azimuthal_roughness", 0.3)?;
-                for (name, b) in [("longitudinal_roughness", beta_m), ("azimuthal_roughness", beta_n)] {
-                    if !(b > 0.0 && b <= 1.0) {
-                        return Err(
-                            self.err(doc.pos_of(i, name), format!("'{name}' must lie in (0, 1], found {b}"))
-                        );
-                    }
-                }
-                let tilt = doc.float_or(i, "scale_tilt", 2.0)?;
-                let pigments = doc.has(i, "eumelanin") || doc.has(i, "pheomelanin");
-                let given = [doc.has(i, "sigma_a"), pigments, doc.has(i, "reflectance")];
-                if given.iter().filter(|&&g| g).count() > 1 {
-                    return Err(self.err(
-                        doc.obj(i).pos,
-                        "hair: give one of sigma_a, the pigments (eumelanin/pheomelanin) or reflectance",
-                    ));
-                }
-                let sigma_a = if doc.has(i, "sigma_a") {
-                    self.const_color(i, "sigma_a", Rgb::ZERO)? * self.nonneg_float(i, "scale", 1.0)?
-                } else if doc.has(i, "reflectance") {
-                    crate::bsdf::hair::Hair::sigma_a_from_reflectance(
-                        self.const_color(i, "reflectance", Rgb::splat(0.5))?,
-                        beta_n,
-                    )
-                } else {
-                    crate::bsdf::hair::Hair::sigma_a_from_melanin(
-                        self.nonneg_float(i, "eumelanin", 1.3)?,
-                        self.nonneg_float(i, "pheomelanin", 0.2)?,
-                    )
-                };
-                Bsdf::Hair(crate::bsdf::hair::Hair::new(sigma_a, eta, beta_m, beta_n, tilt))
-            }
-            "plastic" | "roughplastic" => {
-                let int_ior = self.ior(i, "int_ior", "polypropylene")?;
-                let ext_ior = self.ior(i, "ext_ior", "air")?;
-                if doc.obj(i).plugin == "roughplastic" {
-                    self.distinct_iors(i, int_ior, ext_ior)?;
-                    for name in ["alpha_u", "alpha_v"] {
-                        if doc.has(i, name) || doc.named_child_exists(i, name) {
-                            return Err(self.err(
-                                doc.pos_of(i, name),
-                                "roughplastic does not support anisotropic roughness (alpha_u, alpha_v): give one 'alpha'",
-                            ));
-                        }
-                    }
-                }
-                let eta = int_ior / ext_ior;
-                let diffuse_reflectance = self.color(i, "diffuse_reflectance", Rgb::splat(0.5))?;
-                let specular_reflectance = self.color(i, "specular_reflectance", Rgb::ONE)?;
-                let d = diffuse_reflectance.mean().element_sum() / 3.0;
-                let s = specular_reflectance.mean().element_sum() / 3.0;
-                let (rough, fdr_int) = match self.roughness(i)? {
-                    None => (None, fresnel_diffuse_reflectance(1.0 / eta)),
-                    Some(r) => {
-                        // The coating's transmittance is tabulated for one roughness.
-                        if !matches!((&r.alpha_u, &r.alpha_v), (Texture::Const(_), Texture::Const(_))) {
-                            return Err(self.err(
-                                doc.obj(i).pos,
-                                "roughplastic: alpha must be a constant, not a texture",
-                            ));
-                        }
-                        let (coating, fdr) = RoughCoating::new(r, eta);
-                        (Some(coating), fdr)
-                    }
-                };
-                Bsdf::Plastic(Plastic {
-                    eta,
-                    fdr_int,
-                    nonlinear: doc.boolean_or(i, "nonlinear", false)?,
-                    specular_weight: s / (d + s),
-                    diffuse_reflectance,
-                    specular_reflectance,
-                    rough,
-                })
-            }
-            _ => {
-                return Err(self.unsupported_plugin(
-                    i,
-                    &[
-                        "diffuse",
-                        "twosided",
-                        "conductor",
-                        "roughconductor",
-                        "dielectric",
-                        "roughdielectric",
-                        "thindielectric",
-                        "plastic",
-                        "roughplastic",
-                        "hair",
-                    ],
-                ))
-            }
-        })
+        match self.make(i)? {
+            Make::Bsdf(f) => f(self, i),
+            _ => Err(self.miswired(i)),
+        }
     }
 
     /// The rough interfaces (roughdielectric, roughplastic) need a real interface: with equal
     /// indices of refraction their microfacet terms divide by zero (Mitsuba refuses them too).
-    fn distinct_iors(&self, i: usize, int_ior: f32, ext_ior: f32) -> R<()> {
+    pub(crate) fn distinct_iors(&self, i: usize, int_ior: f32, ext_ior: f32) -> R<()> {
         if int_ior == ext_ior {
             let pos = if self.doc.has(i, "int_ior") {
                 self.doc.pos_of(i, "int_ior")
@@ -783,7 +503,7 @@ impl Builder<'_> {
     }
 
     /// A string parameter naming one of `choices` (`default` when absent).
-    fn choice<T: Copy>(&self, i: usize, name: &str, default: T, choices: &[(&str, T)]) -> R<T> {
+    pub(crate) fn choice<T: Copy>(&self, i: usize, name: &str, default: T, choices: &[(&str, T)]) -> R<T> {
         let Some(v) = self.doc.string(i, name)? else { return Ok(default) };
         choices.iter().find(|(n, _)| *n == v).map(|(_, t)| *t).ok_or_else(|| {
             let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
@@ -795,7 +515,7 @@ impl Builder<'_> {
     }
 
     /// A colour parameter that must be constant.
-    fn const_color(&mut self, i: usize, name: &str, default: Rgb) -> R<Rgb> {
+    pub(crate) fn const_color(&mut self, i: usize, name: &str, default: Rgb) -> R<Rgb> {
         match self.color(i, name, default)? {
             Texture::Const(c) => Ok(c),
             _ => Err(self.err(
@@ -806,7 +526,7 @@ impl Builder<'_> {
     }
 
     /// The rotation part of `to_world`; refuses scaling and shearing.
-    fn rotation(&mut self, i: usize) -> R<Mat3> {
+    pub(crate) fn rotation(&mut self, i: usize) -> R<Mat3> {
         let m = self.doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
         let r = Mat3::from_mat4(m);
         let ortho = (r.transpose() * r - Mat3::IDENTITY).to_cols_array().iter().all(|v| v.abs() < 1e-3);
@@ -820,7 +540,7 @@ impl Builder<'_> {
     }
 
     /// A float parameter that may also be a texture (its red channel is used).
-    fn float_texture(&mut self, i: usize, name: &str, default: f32) -> R<Texture> {
+    pub(crate) fn float_texture(&mut self, i: usize, name: &str, default: f32) -> R<Texture> {
         if self.doc.has(i, name) {
             let v = self.doc.float(i, name)?.unwrap_or(default);
             if !v.is_finite() {
@@ -833,7 +553,7 @@ impl Builder<'_> {
 
     /// `distribution` and `alpha` / `alpha_u` + `alpha_v` of the rough plugins; `None` for the
     /// smooth ones.
-    fn roughness(&mut self, i: usize) -> R<Option<Roughness>> {
+    pub(crate) fn roughness(&mut self, i: usize) -> R<Option<Roughness>> {
         let doc = self.doc;
         if !doc.obj(i).plugin.starts_with("rough") {
             return Ok(None);
@@ -873,7 +593,7 @@ impl Builder<'_> {
     }
 
     /// `material` preset or `eta` + `k` of a conductor.
-    fn conductor_ior(&mut self, i: usize) -> R<(Rgb, Rgb)> {
+    pub(crate) fn conductor_ior(&mut self, i: usize) -> R<(Rgb, Rgb)> {
         let doc = self.doc;
         let material = doc.string(i, "material")?;
         let has_eta_k = doc.has(i, "eta") || doc.has(i, "k");
@@ -902,7 +622,7 @@ impl Builder<'_> {
     }
 
     /// An index of refraction: a number, or one of Mitsuba's named media.
-    fn ior(&mut self, i: usize, name: &str, default: &str) -> R<f32> {
+    pub(crate) fn ior(&mut self, i: usize, name: &str, default: &str) -> R<f32> {
         let doc = self.doc;
         let pos = doc.pos_of(i, name);
         let v = if doc.has(i, name) && doc.string(i, name).is_err() {
@@ -938,153 +658,16 @@ impl Builder<'_> {
                     ),
                 ))
             }
-            "shapegroup" => return self.shape_group(i).map(|_| ()),
-            "instance" => return self.instance(i),
             _ => {}
         }
+        let make = match self.make(i)? {
+            Make::Structure(f) => return f(self, i),
+            Make::Shape(f) => f,
+            _ => return Err(self.miswired(i)),
+        };
         let to_world = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
         let flip_normals = doc.boolean_or(i, "flip_normals", false)?;
-        let mesh = |m: Mesh| -> Geometry {
-            let mut m = m;
-            m.transform(&to_world);
-            Geometry::Mesh(m)
-        };
-        let geometry = match o.plugin.as_str() {
-            "rectangle" | "cube" => {
-                let mut m = if o.plugin == "cube" { Mesh::cube() } else { Mesh::rectangle() };
-                m.transform_flat(&to_world);
-                Geometry::Mesh(m)
-            }
-            "obj" | "ply" => {
-                let rel = doc
-                    .string(i, "filename")?
-                    .ok_or_else(|| self.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
-                let fpos = doc.pos_of(i, "filename");
-                let path = doc.resolve_path(fpos, &rel)?;
-                let face_normals = doc.boolean_or(i, "face_normals", false)?;
-                let parse = if o.plugin == "ply" {
-                    crate::geometry::mesh::ply_load_estimate(&path)
-                } else {
-                    file_size(&path).saturating_mul(PARSE_PER_BYTE)
-                };
-                self.budget.charge(&format!("mesh '{rel}'"), parse, 0).map_err(|e| self.err(fpos, e))?;
-                let loaded = if o.plugin == "obj" {
-                    let flip_v = doc.boolean_or(i, "flip_tex_coords", true)?;
-                    Mesh::load_obj(&path, flip_v)
-                } else {
-                    Mesh::load_ply(&path)
-                };
-                let mut m = loaded
-                    .and_then(Mesh::validate)
-                    .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
-                if face_normals {
-                    m.normals.clear();
-                    m.normals.shrink_to_fit();
-                }
-                let kept = std::mem::size_of_val(m.positions.as_slice())
-                    + std::mem::size_of_val(m.normals.as_slice())
-                    + std::mem::size_of_val(m.uvs.as_slice())
-                    + std::mem::size_of_val(m.tris.as_slice());
-                self.budget
-                    .charge(&format!("mesh '{rel}'"), 0, kept as u64)
-                    .map_err(|e| self.err(fpos, e))?;
-                self.assets.push(path);
-                mesh(m)
-            }
-            "sphere" => {
-                let center = doc.point(i, "center")?.unwrap_or(Vec3::ZERO);
-                let radius = doc.float_or(i, "radius", 1.0)?;
-                if !(radius > 0.0 && radius <= MAX_COORD) {
-                    return Err(self.err(
-                        doc.pos_of(i, "radius"),
-                        format!("sphere radius must be > 0 and at most {MAX_COORD:e}, found {radius:e}"),
-                    ));
-                }
-                let m = to_world * Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius));
-                let c = m.transform_point3(Vec3::ZERO);
-                let axes = [m.x_axis.truncate(), m.y_axis.truncate(), m.z_axis.truncate()];
-                let r = axes[0].length();
-                if axes.iter().any(|a| (a.length() - r).abs() > 1e-4 * r) {
-                    return Err(self.err(doc.pos_of(i, "to_world"), "sphere to_world must scale uniformly"));
-                }
-                let rot = Mat3::from_cols(axes[0] / r, axes[1] / r, axes[2] / r).transpose();
-                Geometry::Sphere(Sphere { center: c, radius: r, rot })
-            }
-            "disk" => Geometry::Disk(Disk::new(to_world)),
-            "linearcurve" | "bsplinecurve" => {
-                let bspline = o.plugin == "bsplinecurve";
-                let rel = doc
-                    .string(i, "filename")?
-                    .ok_or_else(|| self.err(o.pos, format!("{} needs a 'filename'", o.plugin)))?;
-                let fpos = doc.pos_of(i, "filename");
-                let path = doc.resolve_path(fpos, &rel)?;
-                // The text is read a block at a time (`read_curve_file`), never whole; what
-                // parsing holds follows from the file's lines, counted first in a streamed
-                // pass: each a point (16 bytes, up to twice that in a grown list), and each
-                // curve (at least `min` points) a list in two lists of lists (about 96 bytes).
-                let size = file_size(&path);
-                let cannot =
-                    |e: std::io::Error| doc.err(fpos, format!("cannot read curve file '{rel}': {e}"));
-                let lines = count_lines(&path).map_err(cannot)?;
-                let min = if bspline { 4 } else { 2 };
-                let text = size.min(2 * crate::geometry::curves::CURVE_BLOCK as u64);
-                let parse = text.saturating_add(lines.saturating_mul(CURVE_POINT_PARSE + CURVE_PARSE / min));
-                self.budget
-                    .charge(&format!("curve file '{rel}'"), parse, 0)
-                    .map_err(|e| self.err(fpos, e))?;
-                let file = std::fs::File::open(&path).map_err(cannot)?;
-                let mut curves = crate::geometry::curves::read_curve_file(file, min as usize)
-                    .map_err(|e| self.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
-                // to_world moves the points, not the radii (as Mitsuba).
-                for c in &mut curves {
-                    for (p, _) in c.iter_mut() {
-                        *p = to_world.transform_point3(*p);
-                    }
-                }
-                self.assets.push(path);
-                // A B-spline of n points has n - 3 spans of BSPLINE_STEPS segments; a polyline
-                // n - 1 segments.
-                let segments: u64 = curves
-                    .iter()
-                    .map(|c| if bspline { c.len().saturating_sub(3) * BSPLINE_STEPS } else { c.len().saturating_sub(1) } as u64)
-                    .sum();
-                let kept =
-                    segments.saturating_mul(std::mem::size_of::<crate::geometry::curves::Segment>() as u64);
-                // Meanwhile the parsed points are still held, and the B-spline tessellation's
-                // points of the curves being worked on (a few thousand per thread).
-                let points = parse - text;
-                self.budget
-                    .charge(&format!("curve file '{rel}'"), points.saturating_add(kept), kept)
-                    .map_err(|e| self.err(fpos, e))?;
-                if bspline {
-                    let (c, err) = crate::geometry::curves::Curves::bspline(&curves, BSPLINE_STEPS);
-                    tracing::debug!(
-                        "bsplinecurve '{rel}': {} segments, chord error {err:.3e}",
-                        c.segments.len()
-                    );
-                    Geometry::Curves(c)
-                } else {
-                    Geometry::Curves(crate::geometry::curves::Curves::linear(&curves))
-                }
-            }
-            _ => {
-                return Err(self.unsupported_plugin(
-                    i,
-                    &[
-                        "obj",
-                        "ply",
-                        "rectangle",
-                        "cube",
-                        "sphere",
-                        "disk",
-                        "linearcurve",
-                        "bsplinecurve",
-                        "shapegroup",
-                        "instance",
-                    ],
-                ))
-            }
-        };
+        let geometry = make(self, i, &to_world)?;
         let emitters = doc.children(i, "emitter");
         let bsdf = match doc.children(i, "bsdf").as_slice() {
             [] => {
@@ -1118,7 +701,7 @@ impl Builder<'_> {
                 if matches!(shape.geometry, Geometry::Curves(_)) {
                     return Err(self.err(doc.obj(*e).pos, "curves cannot carry an area emitter"));
                 }
-                if doc.obj(*e).plugin != "area" {
+                let Make::Area(radiance) = self.make(*e)? else {
                     return Err(self.err(
                         doc.obj(*e).pos,
                         format!(
@@ -1126,8 +709,8 @@ impl Builder<'_> {
                             doc.obj(*e).plugin
                         ),
                     ));
-                }
-                let radiance = self.color(*e, "radiance", Rgb::ONE)?;
+                };
+                let radiance = radiance(self, *e)?;
                 shape.light = Some(self.lights.len() as u32);
                 self.lights.push(Light::area(shape_idx, &shape, radiance));
             }
@@ -1237,100 +820,25 @@ impl Builder<'_> {
     }
 
     fn emitter(&mut self, i: usize, pos: Pos) -> R<()> {
-        let doc = self.doc;
-        let light = match doc.obj(i).plugin.as_str() {
-            "point" => {
-                let intensity = self.const_color(i, "intensity", Rgb::ONE)?;
-                let m = doc.transform(i, "to_world")?;
-                let p = doc.point(i, "position")?;
-                let position = match (m, p) {
-                    (Some(_), Some(_)) => {
-                        return Err(self.err(pos, "point emitter: give 'position' or 'to_world', not both"))
-                    }
-                    (Some(m), None) => m.transform_point3(Vec3::ZERO),
-                    (None, Some(p)) => p,
-                    (None, None) => Vec3::ZERO,
-                };
-                Light::Point { position, intensity }
-            }
-            "constant" => Light::Constant { radiance: self.const_color(i, "radiance", Rgb::ONE)? },
-            "envmap" => {
-                let rel =
-                    doc.string(i, "filename")?.ok_or_else(|| self.err(pos, "envmap needs a 'filename'"))?;
-                let fpos = doc.pos_of(i, "filename");
-                let path = doc.resolve_path(fpos, &rel)?;
-                let scale = self.nonneg_float(i, "scale", 1.0)?;
-                let to_world = self.rotation(i)?;
-                let filter = self.choice(
-                    i,
-                    "filter_type",
-                    FilterType::Bilinear,
-                    &[("bilinear", FilterType::Bilinear), ("nearest", FilterType::Nearest)],
-                )?;
-                // Mitsuba's default is false; Furnace compensates unless the scene says not to.
-                let compensate = doc.boolean_or(i, "mis_compensation", true)?;
-                let bitmap = self
-                    .bitmap(&path, false, 0)
-                    .map_err(|e| self.err(fpos, format!("cannot load envmap '{rel}': {e}")))?;
-                let (peak, kept) = EnvMap::table_bytes(bitmap.width, bitmap.height, filter);
-                self.budget
-                    .charge("the environment map's sampling tables", peak, kept)
-                    .map_err(|e| self.err(fpos, format!("envmap '{rel}': {e}")))?;
-                self.assets.push(path);
-                Light::Envmap(Arc::new(EnvMap::new(Arc::new(bitmap), scale, to_world, filter, compensate)))
-            }
-            "directional" => {
-                let irradiance = self.const_color(i, "irradiance", Rgb::ONE)?;
-                let direction = match (doc.point(i, "direction")?, doc.transform(i, "to_world")?) {
-                    (Some(_), Some(_)) => {
-                        return Err(self.err(pos, "directional: give 'direction' or 'to_world', not both"))
-                    }
-                    (Some(d), None) => d,
-                    (None, Some(m)) => m.transform_vector3(Vec3::Z),
-                    (None, None) => Vec3::Z,
-                };
-                if direction.length_squared() == 0.0 || !direction.is_finite() {
-                    return Err(self.err(pos, "directional: the direction must be a non-zero vector"));
-                }
-                Light::Directional { direction: direction.normalize(), irradiance }
-            }
-            "spot" => {
-                let intensity = self.const_color(i, "intensity", Rgb::ONE)?;
-                let cutoff = doc.float_or(i, "cutoff_angle", 20.0)?;
-                let beam = doc.float_or(i, "beam_width", cutoff * 0.75)?;
-                if !(cutoff > 0.0 && cutoff <= 180.0 && beam > 0.0 && beam <= cutoff) {
-                    return Err(self.err(
-                        pos,
-                        format!("spot: need 0 < beam_width ({beam}) <= cutoff_angle ({cutoff}) <= 180"),
-                    ));
-                }
-                let m = doc.transform(i, "to_world")?.unwrap_or(Mat4::IDENTITY);
-                let (cutoff, beam) = (cutoff.to_radians(), beam.to_radians());
-                Light::Spot {
-                    position: m.transform_point3(Vec3::ZERO),
-                    axis: m.transform_vector3(Vec3::Z).normalize(),
-                    intensity,
-                    cos_cutoff: cutoff.cos(),
-                    cos_beam: beam.cos(),
-                    cutoff,
-                    beam,
-                }
-            }
-            "area" => return Err(self.err(pos, "an 'area' emitter must be nested inside a <shape>")),
-            _ => {
-                return Err(self.unsupported_plugin(
-                    i,
-                    &["point", "spot", "directional", "constant", "envmap", "area (inside a shape)"],
-                ))
-            }
+        let light = match self.make(i)? {
+            Make::Emitter(f) => f(self, i, pos)?,
+            Make::Area(_) => return Err(self.err(pos, "an 'area' emitter must be nested inside a <shape>")),
+            _ => return Err(self.miswired(i)),
         };
         self.lights.push(light);
         Ok(())
     }
 }
 
-/// Round segments per B-spline span.
-const BSPLINE_STEPS: usize = 8;
+/// `shapegroup` (see `plugins`): built once, drawn only through instances.
+pub(crate) fn shape_group_from(b: &mut Builder, i: usize) -> R<()> {
+    b.shape_group(i).map(|_| ())
+}
+
+/// `instance` (see `plugins`): a shapegroup placed by `to_world`.
+pub(crate) fn instance_from(b: &mut Builder, i: usize) -> R<()> {
+    b.instance(i)
+}
 
 /// Indices of refraction of common media (at about 589 nm), under Mitsuba's names.
 const IORS: &[(&str, f32)] = &[

@@ -1,6 +1,7 @@
 //! Scenes: Mitsuba 3 XML files loaded into everything the renderer needs.
 
 pub mod build;
+pub mod plugins;
 pub mod xml;
 
 use std::path::{Path, PathBuf};

@@ -219,6 +219,39 @@ impl Bitmap {
     }
 }
 
+/// Scene loading: `bitmap` (`filename`, `filter_type`, `wrap_mode`, `raw`, `to_uv`). An image
+/// used by several textures is read once; the pyramid is built only for the filters that read
+/// it.
+pub(crate) fn from_scene(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<super::Texture> {
+    use std::sync::Arc;
+    let doc = b.doc;
+    let rel = doc.string(i, "filename")?.ok_or_else(|| b.err(doc.obj(i).pos, "bitmap needs a 'filename'"))?;
+    let fpos = doc.pos_of(i, "filename");
+    let path = doc.resolve_path(fpos, &rel)?;
+    let raw = doc.boolean_or(i, "raw", false)?;
+    let filter = b.choice(i, "filter_type", FilterType::Bilinear, &FilterType::ALL.map(|f| (f.name(), f)))?;
+    let wrap = b.choice(
+        i,
+        "wrap_mode",
+        WrapMode::Repeat,
+        &[("repeat", WrapMode::Repeat), ("mirror", WrapMode::Mirror), ("clamp", WrapMode::Clamp)],
+    )?;
+    let to_uv = super::to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(glam::Mat4::IDENTITY));
+    let bitmap =
+        b.shared_bitmap(&path, raw).map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?;
+    let mip = matches!(filter, FilterType::Trilinear | FilterType::Ewa);
+    if mip {
+        let texels = (bitmap.width * bitmap.height) as u64;
+        let cost = texels.saturating_mul(crate::scene::build::MIP_TEXEL);
+        b.budget.charge(&format!("the mipmap of texture '{rel}'"), cost, cost).map_err(|e| b.err(fpos, e))?;
+    }
+    let mip = mip.then(|| super::MipMap::build(&bitmap));
+    Ok(super::Texture::Bitmap(Arc::new(super::BitmapTexture { bitmap, filter, wrap, to_uv, mip })))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

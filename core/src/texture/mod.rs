@@ -124,3 +124,15 @@ fn apply(m: &[[f32; 3]; 2], uv: Vec2) -> Vec2 {
 pub fn to_uv_rows(m: &glam::Mat4) -> [[f32; 3]; 2] {
     [[m.x_axis.x, m.y_axis.x, m.w_axis.x], [m.x_axis.y, m.y_axis.y, m.w_axis.y]]
 }
+
+/// Scene loading: `checkerboard` (`color0` 0.4, `color1` 0.2, `to_uv`).
+pub(crate) fn checkerboard_from(
+    b: &mut crate::scene::build::Builder,
+    i: usize,
+) -> crate::scene::build::R<Texture> {
+    Ok(Texture::Checkerboard(Arc::new(Checkerboard {
+        color0: b.const_color(i, "color0", Rgb::splat(0.4))?,
+        color1: b.const_color(i, "color1", Rgb::splat(0.2))?,
+        to_uv: to_uv_rows(&b.doc.transform(i, "to_uv")?.unwrap_or(glam::Mat4::IDENTITY)),
+    })))
+}
