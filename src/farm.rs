@@ -334,7 +334,8 @@ fn bundle_of(
     frames: Option<FrameRange>,
 ) -> Result<(Bundle, BTreeMap<String, PathBuf>, Scene)> {
     // Loaded to check it and to find its files: no BVH (the workers build their own).
-    let limits = furnace_core::LoadLimits { accel: false, ..Default::default() };
+    let assets = Some(Arc::new(furnace_core::scene::assets::AssetCache::new()));
+    let limits = furnace_core::LoadLimits { accel: false, assets, ..Default::default() };
     let Some(range) = frames else {
         let loaded = Scene::load_with(scene, defines, &limits)?;
         let (bundle, files) = Bundle::of_scene(scene, &loaded).map_err(anyhow::Error::msg)?;

@@ -223,3 +223,30 @@ fn every_shipped_example_loads() {
     }
     assert!(n >= 4, "{n} examples");
 }
+
+/// Issue 18: frames loaded one after another with one asset cache parse each file they share
+/// once (frames.xml: its mesh and its texture), and render the same bits as frames loaded
+/// alone. A curve file too (hair.xml, loaded twice).
+#[test]
+fn frames_loaded_with_an_asset_cache_parse_shared_files_once() {
+    use furnace_core::scene::assets::AssetCache;
+    use furnace_core::{LoadLimits, Scene};
+    use std::sync::Arc;
+    let cache = Arc::new(AssetCache::new());
+    let limits = LoadLimits { assets: Some(cache.clone()), ..Default::default() };
+    for (k, frame) in ["0", "7", "13"].into_iter().enumerate() {
+        let defs = [("frame".to_string(), frame.to_string())];
+        let cached = Scene::load_with(&scenes().join("frames.xml"), &defs, &limits).unwrap();
+        // The first frame parses the mesh and the image; the others find both.
+        assert_eq!(cache.counts(), (2 * k as u64, 2));
+        let alone = load("frames.xml", &[("frame", frame)]);
+        assert!(render(&cached, 2, 1).0 == render(&alone, 2, 1).0, "frame {frame}");
+    }
+    let cache = Arc::new(AssetCache::new());
+    let limits = LoadLimits { assets: Some(cache.clone()), ..Default::default() };
+    let a = Scene::load_with(&scenes().join("hair.xml"), &[], &limits).unwrap();
+    let misses = cache.counts().1;
+    let b = Scene::load_with(&scenes().join("hair.xml"), &[], &limits).unwrap();
+    assert_eq!(cache.counts(), (misses, misses), "the second load parsed a file again");
+    assert!(render(&a, 1, 0).0 == render(&b, 1, 0).0);
+}

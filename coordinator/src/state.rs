@@ -143,6 +143,8 @@ struct Loader {
     max_scene_bytes: u64,
     /// Largest decompressed partial accepted: no chunk may need more.
     max_partial: usize,
+    /// Files parsed by the loads before (the frames of one submission share theirs).
+    assets: Option<Arc<furnace_core::scene::assets::AssetCache>>,
 }
 
 impl Loader {
@@ -169,9 +171,12 @@ impl Loader {
             return Ok((id.clone(), vec![self.new_job(id, spec, JobState::Queued, created, deadline)?]));
         };
         range.check().map_err(CoordError::Invalid)?;
-        // Every frame is loaded and checked now; only the first keeps its scene (workers in
-        // this process load the others when they reach them) and its BVH.
-        let later = Loader { keep_scenes: false, ..self.clone() };
+        // Every frame is loaded and checked now, each file the frames share parsed once; only
+        // the first keeps its scene (workers in this process load the others when they reach
+        // them) and its BVH.
+        let assets = Some(Arc::new(furnace_core::scene::assets::AssetCache::new()));
+        let first = Loader { assets: assets.clone(), ..self.clone() };
+        let later = Loader { keep_scenes: false, assets, ..self.clone() };
         let mut jobs: Vec<Job> = Vec::new();
         for n in range.numbers() {
             let mut defines = spec.defines.clone();
@@ -185,7 +190,7 @@ impl Loader {
                 frames: None,
                 frame_of: Some(FrameOf { job: id.clone(), frame: n }),
             };
-            let loader = if jobs.is_empty() { self } else { &later };
+            let loader = if jobs.is_empty() { &first } else { &later };
             let within = |e: CoordError| e.within(&format!("frame {n}"));
             if deadline.is_some_and(|d| Instant::now() > d) {
                 return Err(within(CoordError::TooLarge("the request's time ran out".into())));
@@ -217,7 +222,12 @@ impl Loader {
     ) -> Result<Scene, CoordError> {
         b.validate().map_err(CoordError::Invalid)?;
         // The BVH only for workers in this process: checking and planning need none.
-        let limits = LoadLimits { max_bytes: self.max_scene_bytes, deadline, accel: self.keep_scenes };
+        let limits = LoadLimits {
+            max_bytes: self.max_scene_bytes,
+            deadline,
+            accel: self.keep_scenes,
+            assets: self.assets.clone(),
+        };
         let defines: Vec<(String, String)> = defines.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
         self.store.load_bundle(b, &|dir: &Path| {
             Scene::load_with(&dir.join(&b.scene), &defines, &limits).map_err(|e| {
@@ -537,6 +547,7 @@ impl Coordinator {
             keep_scenes: self.keep_scenes,
             max_scene_bytes: self.max_scene_bytes,
             max_partial: self.max_partial,
+            assets: None,
         }
     }
 

@@ -225,6 +225,8 @@ pub struct HttpLink {
     /// The scenes loaded last, by bundle hash and scene parameters, the newest last (at most
     /// [`SCENES_KEPT`]: the frames of a frame-range job would otherwise pile up).
     scenes: Mutex<Vec<(String, Arc<Scene>)>>,
+    /// Files the loads before parsed: a frame reads again only what differs from the last.
+    assets: Arc<furnace_core::scene::assets::AssetCache>,
     /// How long a lease request may wait at the coordinator for work.
     pub wait: Duration,
     /// A file that holds the Unix time of the last answer from the coordinator (rewritten at
@@ -255,6 +257,7 @@ impl HttpLink {
             cache: Mutex::new((cache, cache_dir)),
             cache_name,
             scenes,
+            assets: Arc::new(furnace_core::scene::assets::AssetCache::new()),
             wait: Duration::from_secs(2),
             health_file: None,
             max_scene_bytes: furnace_core::FARM_SCENE_BYTES,
@@ -389,7 +392,11 @@ impl HttpLink {
             let dst = dir.join(path);
             link_or_copy(&file, &dst).map_err(|e| cache_err(&dst, e))?;
         }
-        let limits = furnace_core::LoadLimits { max_bytes: self.max_scene_bytes, ..Default::default() };
+        let limits = furnace_core::LoadLimits {
+            max_bytes: self.max_scene_bytes,
+            assets: Some(self.assets.clone()),
+            ..Default::default()
+        };
         // Errors name files by their paths in the bundle.
         let inside = format!("{}/", dir.display());
         let scene = Scene::load_with(&dir.join(&bundle.scene), defines, &limits).map_err(|e| {

@@ -633,14 +633,18 @@ pub(crate) fn from_scene(
     let path = doc.resolve_path(fpos, &rel)?;
     let size = file_size(&path);
     let cannot = |e: std::io::Error| doc.err(fpos, format!("cannot read curve file '{rel}': {e}"));
-    let lines = count_lines(&path).map_err(cannot)?;
+    let lines = *b.cached(&path, "lines", || count_lines(&path)).map_err(cannot)?;
     let min = if bspline { 4 } else { 2 };
     let text = size.min(2 * CURVE_BLOCK as u64);
     let parse = text.saturating_add(lines.saturating_mul(CURVE_POINT_PARSE + CURVE_PARSE / min));
     b.budget.charge(&format!("curve file '{rel}'"), parse, 0).map_err(|e| b.err(fpos, e))?;
-    let file = std::fs::File::open(&path).map_err(cannot)?;
-    let mut curves =
-        read_curve_file(file, min as usize).map_err(|e| b.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+    let read = || {
+        let file = std::fs::File::open(&path).map_err(cannot)?;
+        read_curve_file(file, min as usize).map_err(|e| b.err(fpos, format!("{} '{rel}': {e}", o.plugin)))
+    };
+    let curves = b.cached(&path, &format!("curves min={min}"), read)?;
+    // The parsed points, in their own space; this scene's copy is placed by to_world.
+    let mut curves = std::sync::Arc::try_unwrap(curves).unwrap_or_else(|c| (*c).clone());
     for c in &mut curves {
         for (p, _) in c.iter_mut() {
             *p = to_world.transform_point3(*p);

@@ -479,14 +479,14 @@ pub(crate) fn file_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::
         crate::scene::build::file_size(&path).saturating_mul(crate::scene::build::PARSE_PER_BYTE)
     };
     b.budget.charge(&format!("mesh '{rel}'"), parse, 0).map_err(|e| b.err(fpos, e))?;
-    let loaded = if o.plugin == "obj" {
-        let flip_v = doc.boolean_or(i, "flip_tex_coords", true)?;
-        Mesh::load_obj(&path, flip_v)
-    } else {
-        Mesh::load_ply(&path)
-    };
-    let mut m =
-        loaded.and_then(Mesh::validate).map_err(|e| b.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+    let obj = o.plugin == "obj";
+    let flip_v = obj && doc.boolean_or(i, "flip_tex_coords", true)?;
+    let load =
+        || if obj { Mesh::load_obj(&path, flip_v) } else { Mesh::load_ply(&path) }.and_then(Mesh::validate);
+    let what = format!("{} flip_v={flip_v}", o.plugin);
+    let m = b.cached(&path, &what, load).map_err(|e| b.err(fpos, format!("{} '{rel}': {e}", o.plugin)))?;
+    // The parsed mesh, in its own space; this scene's copy is placed by to_world.
+    let mut m = std::sync::Arc::try_unwrap(m).unwrap_or_else(|m| (*m).clone());
     if face_normals {
         m.normals.clear();
         m.normals.shrink_to_fit();

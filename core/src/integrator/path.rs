@@ -26,7 +26,7 @@ pub fn li(
     s: &mut SampleStream,
     st: &mut Stats,
 ) -> Rgb {
-    let plan = &scene.techniques;
+    let plan = scene.techniques;
     let settings = &scene.integrator;
     if settings.max_depth == 0 {
         return Rgb::ZERO; // Mitsuba: max_depth 0 renders nothing, not even emitters

@@ -549,7 +549,7 @@ pub(crate) fn from_scene(
         .charge("the environment map's sampling tables", peak, kept)
         .map_err(|e| b.err(fpos, format!("envmap '{rel}': {e}")))?;
     b.assets.push(path);
-    Ok(super::Light::Envmap(Arc::new(EnvMap::new(Arc::new(bitmap), scale, to_world, filter, compensate))))
+    Ok(super::Light::Envmap(Arc::new(EnvMap::new(bitmap, scale, to_world, filter, compensate))))
 }
 
 #[cfg(test)]

@@ -182,6 +182,9 @@ pub fn build(doc: &Doc, limits: &super::LoadLimits) -> R<Scene> {
 }
 
 pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
+    if let Some(cache) = &budget.limits.assets {
+        cache.begin_load();
+    }
     let mut b = Builder {
         doc,
         budget,
@@ -272,14 +275,21 @@ impl Builder<'_> {
     /// Loads an image within the budget: refused from its header when its texels (at
     /// [`TEXEL_LOAD`] bytes each while decoding) do not fit; each then keeps
     /// [`TEXEL_KEPT`] bytes, and `extra` more.
-    pub(crate) fn bitmap(&mut self, path: &std::path::Path, raw: bool, extra: u64) -> Result<Bitmap, String> {
+    pub(crate) fn bitmap(
+        &mut self,
+        path: &std::path::Path,
+        raw: bool,
+        extra: u64,
+    ) -> Result<Arc<Bitmap>, String> {
         self.budget.in_time()?;
         let file = file_size(path);
         // The file is read whole: refused before it is, if it alone does not fit.
         self.budget.charge("an image file", file, 0)?;
         let room = self.budget.room().saturating_sub(file);
         let fits = room / TEXEL_LOAD.max(TEXEL_KEPT + extra);
-        let bitmap = Bitmap::load_within(path, raw, fits.min(crate::texture::MAX_TEXELS)).map_err(|e| match e {
+        let what = format!("image raw={raw}");
+        let read = || Bitmap::load_within(path, raw, fits.min(crate::texture::MAX_TEXELS));
+        let bitmap = self.cached(path, &what, read).map_err(|e| match e {
             crate::texture::BitmapError::TooLarge { width, height, .. } if fits < crate::texture::MAX_TEXELS => format!(
                 "a {width} x {height} image does not fit in what is left of the {:.1} MiB a scene may take to load (--max-scene-memory-mb)",
                 self.budget.limits.max_bytes as f64 / (1u64 << 20) as f64
@@ -302,10 +312,24 @@ impl Builder<'_> {
         if let Some(b) = self.bitmaps.get(&key) {
             return Ok(b.clone());
         }
-        let b = Arc::new(self.bitmap(path, raw, 0)?);
+        let b = self.bitmap(path, raw, 0)?;
         self.assets.push(path.to_path_buf());
         self.bitmaps.insert(key, b.clone());
         Ok(b)
+    }
+
+    /// What `load` makes of the file at `path`, from the load's asset cache when it has one
+    /// (see `assets`); `what` names the parser and its settings.
+    pub(crate) fn cached<T: Send + Sync + 'static, E>(
+        &self,
+        path: &std::path::Path,
+        what: &str,
+        load: impl FnOnce() -> Result<T, E>,
+    ) -> Result<Arc<T>, E> {
+        match &self.budget.limits.assets {
+            Some(cache) => cache.get(path, what, load),
+            None => load().map(Arc::new),
+        }
     }
 
     /// How object `i`'s plugin is built, from the table; a plugin the table does not list is

@@ -1,5 +1,6 @@
 //! Scenes: Mitsuba 3 XML files loaded into everything the renderer needs.
 
+pub mod assets;
 pub mod build;
 pub mod plugins;
 pub mod xml;
@@ -72,6 +73,8 @@ pub struct LoadLimits {
     /// coordinator's case); its cost counts all the same, so that a scene loaded within a
     /// budget loads within the same budget where it is rendered.
     pub accel: bool,
+    /// Files earlier loads parsed, to use again (see [`assets`]); `None`: every file is read.
+    pub assets: Option<std::sync::Arc<assets::AssetCache>>,
 }
 
 /// The memory a farm's coordinator and workers let one scene take to load, unless told
@@ -81,7 +84,7 @@ pub const FARM_SCENE_BYTES: u64 = 8 << 30;
 impl Default for LoadLimits {
     /// No limit on memory or time; the BVH built.
     fn default() -> LoadLimits {
-        LoadLimits { max_bytes: u64::MAX, deadline: None, accel: true }
+        LoadLimits { max_bytes: u64::MAX, deadline: None, accel: true, assets: None }
     }
 }
 
