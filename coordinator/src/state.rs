@@ -809,8 +809,9 @@ impl Coordinator {
     pub fn lease(&mut self, worker: &str, now: Instant) -> Option<Lease> {
         self.expire_leases(now);
         self.seen(worker, now);
-        // The frames of a frame-range job go in frame order.
-        let mut order: Vec<(std::cmp::Reverse<i32>, u64, &str, u32, String)> = self
+        // The frames of a frame-range job go in frame order. One pass (no sort): a frame-range
+        // job of thousands of frames is thousands of jobs here.
+        let id = self
             .jobs
             .values()
             .filter(|j| matches!(j.state, JobState::Queued | JobState::Running))
@@ -818,14 +819,13 @@ impl Coordinator {
             .filter(|j| !self.unwritten.contains_key(&j.id))
             .filter(|j| j.failures.get(worker).copied().unwrap_or(0) < MAX_FAILURES_PER_WORKER)
             .filter(|j| !j.queue.is_empty())
-            .map(|j| {
+            .min_by_key(|j| {
                 let (group, frame) =
-                    j.spec.frame_of.as_ref().map_or((j.id.as_str(), 0), |f| (&f.job, f.frame));
-                (std::cmp::Reverse(j.spec.settings.priority), j.created, group, frame, j.id.clone())
-            })
-            .collect();
-        order.sort();
-        let (_, _, _, _, id) = order.into_iter().next()?;
+                    j.spec.frame_of.as_ref().map_or((j.id.as_str(), 0), |f| (f.job.as_str(), f.frame));
+                (std::cmp::Reverse(j.spec.settings.priority), j.created, group, frame, j.id.as_str())
+            })?
+            .id
+            .clone();
         let epoch = self.next_epoch;
         self.next_epoch += 1;
         let deadline = now + self.lease_duration;
