@@ -190,3 +190,31 @@ fn generate_writes_a_seed_class_scene_that_renders() {
     assert!(lit * 10 > img.data.len() * 7, "{lit} of {} pixels lit", img.data.len());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `furnace plugins` prints the loader's table (as docs/SCENES.md holds it), and `--plan
+/// --json` the render plan's description as JSON, the same words as the text.
+#[test]
+fn plugins_and_the_plan_as_json() {
+    let o = furnace().arg("plugins").output().unwrap();
+    assert!(o.status.success());
+    let table = String::from_utf8(o.stdout).unwrap();
+    assert_eq!(table, furnace_core::scene::plugins::markdown());
+    assert!(table.contains("| shape | `bsplinecurve` |") && table.contains("| bsdf | `hair` |"), "{table}");
+    let o = furnace().args(["render", "--plan", "--json"]).arg(scenes().join("small.xml")).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let plan: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let text = load("small.xml", &[]).describe().to_string();
+    assert!(plan["camera"].as_str().unwrap().starts_with("thin lens"), "{plan}");
+    assert_eq!(plan["max_depth"], 6);
+    for stage in plan["stages"].as_array().unwrap() {
+        assert!(text.contains(stage.as_str().unwrap()), "{stage} not in {text}");
+    }
+    // --json goes with --plan only.
+    assert!(!furnace()
+        .args(["render", "--json"])
+        .arg(scenes().join("small.xml"))
+        .output()
+        .unwrap()
+        .status
+        .success());
+}
