@@ -1258,6 +1258,32 @@ fn the_dashboard_shows_progress_and_previews_and_controls_jobs() {
     let local = local_render(&dir, "textured.xml", 16);
     assert!(bytes.as_ref() == local.as_slice(), "the page's job differs from furnace render");
 
+    // A frame-range job: a mark per frame, each done in turn; a click shows that frame.
+    let out = Command::new(BIN)
+        .arg("submit")
+        .arg(scenes().join("frames.xml"))
+        .args(["--coordinator", &url, "--token", token, "--spp", "4", "--frames", "0-2", "--tile", "16"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let anim = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    let marks = format!("[...document.querySelectorAll('tr[data-job=\"{anim}\"] .frame')]");
+    b.wait_for(
+        "three frames, done",
+        &format!("{marks}.length === 3 && {marks}.every(m => m.className === 'frame state-done')"),
+        Duration::from_secs(120),
+    );
+    assert_eq!(b.eval(&format!("{marks}.map(m => m.textContent).join(' ')")), "0 1 2");
+    assert!(b.eval(&format!("{marks}[1].title")).as_str().unwrap().starts_with("frame 1: done, 100%"));
+    b.click(&format!("tr[data-job=\"{anim}\"] .frame[data-frame=\"2\"]"));
+    b.wait_for(
+        "frame 2 shown large",
+        &format!(
+            "document.getElementById('large-id').textContent === '{anim}, frame 2' && document.getElementById('large').naturalWidth === 40"
+        ),
+        Duration::from_secs(10),
+    );
+
     // Cancel from the page.
     let second = submit("4096");
     let row2 = format!("tr[data-job=\"{second}\"]");
