@@ -386,6 +386,10 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
     let api = Api::new(&a.coordinator, a.token.clone())?;
     let defines = crate::parse_defines(&a.define)?;
     let frames = a.frames.as_deref().map(FrameRange::parse).transpose().map_err(anyhow::Error::msg)?;
+    if let (Some(range), Some(out)) = (frames, &a.output) {
+        // Checked before anything is uploaded: a bad name found after the render loses it.
+        check_frame_output(out, range.count())?;
+    }
     let (bundle, files, scene) = bundle_of(&a.scene, &defines, frames)?;
     for (rel, path) in &files {
         let hash = &bundle.files[rel];
@@ -454,14 +458,27 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
     };
     let out = a.output.unwrap_or_else(|| PathBuf::from(format!("{id}_####.exr")));
     let pattern = out.to_string_lossy().to_string();
-    if !pattern.contains('#') && range.count() > 1 {
-        bail!(
-            "-o {pattern}: a frame range needs '#'s in the output name for the frame number (out_####.exr)"
-        );
-    }
     for n in range.numbers() {
         let out = PathBuf::from(furnace_proto::frame_path(&pattern, n));
         download(&api, &format!("/v1/jobs/{id}/frames/{n}/result.exr"), &out)?;
+    }
+    Ok(())
+}
+
+/// `-o` for a frame range of `count` frames: `#`s in the file name, before its extension (the
+/// PNG beside each EXR takes the same name), none in its folder.
+fn check_frame_output(out: &std::path::Path, count: u64) -> Result<()> {
+    let shown = out.display();
+    if out.parent().is_some_and(|d| d.to_string_lossy().contains('#')) {
+        bail!("-o {shown}: '#' may stand for the frame number in the file name only, not in its folder");
+    }
+    let stem = out.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+    let name = out.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+    if name.contains('#') && !stem.contains('#') {
+        bail!("-o {shown}: the frame number's '#'s must come before the extension (out_####.exr)");
+    }
+    if count > 1 && !stem.contains('#') {
+        bail!("-o {shown}: a frame range needs '#'s in the output name for the frame number (out_####.exr)");
     }
     Ok(())
 }

@@ -218,3 +218,27 @@ fn plugins_and_the_plan_as_json() {
         .status
         .success());
 }
+
+/// `furnace submit --frames ... --wait -o NAME` checks NAME before it uploads or submits
+/// anything: a bad name found after the render would lose it. Nothing listens on the
+/// coordinator's address here, so an error about the name shows that nothing was sent.
+#[test]
+fn submit_checks_the_frame_output_name_before_submitting() {
+    let scene = scenes().join("frames.xml");
+    for (out, expected) in [
+        ("out.exr", "needs '#'s in the output name"),
+        ("shot.####", "before the extension"),
+        ("dir_##/out.exr", "not in its folder"),
+    ] {
+        let o = furnace()
+            .arg("submit")
+            .arg(&scene)
+            .args(["--frames", "0-2", "--wait", "-o", out])
+            .args(["--coordinator", "http://127.0.0.1:9"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{out}");
+        assert!(err.contains(expected), "-o {out}: {err}");
+    }
+}

@@ -894,3 +894,127 @@ fn a_frame_range_is_one_job_rendered_frame_by_frame() {
     assert!(std::fs::read_dir(data.join("jobs")).unwrap().next().is_none(), "a frame's folder is left");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Issue 18, hardened: what a frame range may cost the coordinator. A range whose frames would
+/// hold more than the job memory limit is refused after its first frame, not after making them
+/// all; a noise-target range opens at most `MAX_OPEN_FRAMES` frames at once (each holds an
+/// image); `####` frames each carry their own scene file, not every frame's; a frame cancelled
+/// alone leaves the others rendering, and frames cancelled before they began store no image;
+/// a restart keeps no frame's scene in memory before a worker reaches it.
+#[test]
+fn frame_ranges_are_bounded_in_memory_and_cancel_cheaply() {
+    let dir = scratch("coord-frames-bounded");
+    let data = dir.join("data");
+    let coord = open_coordinator(&data);
+    let bundle = store_frames(&coord, &[0]);
+    let settings =
+        JobSettings { spp: 1024, tile_size: 16, spp_per_chunk: 1, width: 0, height: 0, ..Default::default() };
+    // 6 tiles x 1024 passes a frame: about 0.7 MB of chunk plan a frame; 10,000 frames would
+    // be 7 GB. Refused against a 256 MB limit, and at once.
+    coord.lock().unwrap().max_job_bytes = 256 << 20;
+    let huge = JobSpec {
+        frames: Some(furnace_proto::FrameRange::parse("0-9999").unwrap()),
+        ..JobSpec::new(bundle.clone(), settings.clone())
+    };
+    let t = Instant::now();
+    let e = state::submit(&coord, huge, None, None).unwrap_err();
+    assert!(matches!(&e, CoordError::TooLarge(m) if m.contains("10000 frames")), "{e:?}");
+    assert!(t.elapsed().as_secs_f64() < 10.0, "refused only after {:?}", t.elapsed());
+    assert!(coord.lock().unwrap().job_ids().is_empty());
+    coord.lock().unwrap().max_job_bytes = 8 << 30;
+
+    // A noise-target range: each frame's queue holds only its first pass until it is judged.
+    let noisy = JobSettings { spp: 8, spp_per_chunk: 2, target_rel_error: Some(1e-6), ..settings.clone() };
+    let spec = JobSpec {
+        frames: Some(furnace_proto::FrameRange::parse("0-7").unwrap()),
+        ..JobSpec::new(bundle.clone(), noisy)
+    };
+    let (job, _) = state::submit(&coord, spec, None, None).unwrap();
+    let mut leased = std::collections::BTreeSet::new();
+    while let Some(l) = coord.lock().unwrap().lease("w", Instant::now()) {
+        leased.insert(l.job.clone());
+    }
+    let frames: std::collections::BTreeSet<&str> =
+        leased.iter().map(|j| j.rsplit('-').next().unwrap()).collect();
+    assert_eq!(frames.len(), state::MAX_OPEN_FRAMES, "frames opened: {frames:?}");
+    assert_eq!(frames, ["0", "1", "2"].into_iter().collect());
+
+    // Frame 1 cancelled alone: the job goes on; then the whole job is cancelled.
+    let frame1 = coord.lock().unwrap().frame_job(&job, 1).unwrap();
+    state::control(&coord, &frame1, "cancel").unwrap();
+    let st = coord.lock().unwrap().status(&job).unwrap();
+    assert_eq!(st.state, JobState::Running, "one cancelled frame ended the job");
+    assert_eq!(st.frames[1].state, JobState::Cancelled);
+    let next = coord.lock().unwrap().lease("w", Instant::now()).expect("frame 3 may start now");
+    assert!(next.job.ends_with("-3"), "{}", next.job);
+    state::control(&coord, &job, "cancel").unwrap();
+    let c = coord.lock().unwrap();
+    assert_eq!(c.status(&job).unwrap().state, JobState::Cancelled);
+    for n in 4..=7 {
+        let frame = c.frame_job(&job, n).unwrap();
+        assert!(c.store().checkpoint(&frame).is_none(), "frame {n} never began but stored an image");
+    }
+    drop(c);
+    drop(coord);
+    let coord = Mutex::new(Coordinator::open_with(&data, true).unwrap());
+    {
+        let c = coord.lock().unwrap();
+        let st = c.status(&job).unwrap();
+        assert_eq!(st.state, JobState::Cancelled);
+        assert!(st.frames.iter().all(|f| f.state == JobState::Cancelled), "{:?}", st.frames);
+    }
+
+    // Frames of `####` files: each frame's bundle holds its own scene file only.
+    let folder = dir.join("anim");
+    std::fs::create_dir_all(folder.join("assets")).unwrap();
+    for asset in ["quad.obj", "checker.png"] {
+        std::fs::copy(scenes().join("assets").join(asset), folder.join("assets").join(asset)).unwrap();
+    }
+    let mut anim = Bundle { scene: "anim_##.xml".into(), files: Default::default() };
+    let xml = std::fs::read_to_string(scenes().join("frames.xml")).unwrap();
+    let default = "<default name=\"frame\" value=\"0\"/>";
+    assert!(xml.contains(default));
+    for n in [0u32, 1, 2] {
+        let path = folder.join(format!("anim_{n:02}.xml"));
+        std::fs::write(&path, xml.replace(default, &format!("<default name=\"frame\" value=\"{n}\"/>")))
+            .unwrap();
+        let (b, local) = Bundle::of_scene(&path, &Scene::load(&path, &[]).unwrap()).unwrap();
+        for (rel, p) in local {
+            coord.lock().unwrap().store().put_file(&b.files[&rel], &std::fs::read(p).unwrap()).unwrap();
+        }
+        anim.files.extend(b.files);
+    }
+    let spec = JobSpec {
+        frames: Some(furnace_proto::FrameRange::parse("0-2").unwrap()),
+        ..JobSpec::new(anim, JobSettings { spp: 2, spp_per_chunk: 2, ..settings })
+    };
+    let (job, _) = state::submit(&coord, spec, None, None).unwrap();
+    let mut seen = std::collections::BTreeSet::new();
+    loop {
+        let lease = coord.lock().unwrap().lease("w", Instant::now());
+        let Some(l) = lease else { break };
+        if !seen.insert(l.bundle_hash.clone()) {
+            continue;
+        }
+        let manifest =
+            String::from_utf8(coord.lock().unwrap().bundle_manifest(&l.bundle_hash).unwrap()).unwrap();
+        let n: u32 = l.job.rsplit('-').next().unwrap().parse().unwrap();
+        for m in [0u32, 1, 2] {
+            let name = format!("anim_{m:02}.xml");
+            assert_eq!(manifest.contains(&name), m == n, "frame {n}'s bundle and {name}: {manifest}");
+        }
+        assert!(manifest.contains("checker.png"), "the shared texture: {manifest}");
+        // No frame's scene is held before a worker asks for it.
+        assert!(coord.lock().unwrap().job_scene(&l.job).is_none() || n == 0);
+    }
+    assert_eq!(seen.len(), 3, "frames of job {job}");
+    drop(coord);
+    let coord = Mutex::new(Coordinator::open_with(&data, true).unwrap());
+    let c = coord.lock().unwrap();
+    for n in 0..3 {
+        let frame = c.frame_job(&job, n).unwrap();
+        assert!(c.job_scene(&frame).is_none(), "frame {n}'s scene loaded at restart");
+    }
+    drop(c);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -35,6 +35,8 @@ fn request_hash(spec: &JobSpec) -> String {
 pub const MAX_FAILURES_PER_WORKER: u32 = 3;
 /// Workers a job's status lists (the most recent).
 pub const MAX_JOB_WORKERS: usize = 1000;
+/// Most frames of one frame-range job started and not yet finished at once.
+pub const MAX_OPEN_FRAMES: usize = 3;
 
 /// What the coordinator remembers of a worker: it exists only in the requests it makes.
 struct WorkerSeen {
@@ -143,6 +145,9 @@ struct Loader {
     max_scene_bytes: u64,
     /// Largest decompressed partial accepted: no chunk may need more.
     max_partial: usize,
+    /// Most memory the coordinator's jobs may hold (a frame range's frames are weighed before
+    /// they are all made).
+    max_job_bytes: usize,
     /// Files parsed by the loads before (the frames of one submission share theirs).
     assets: Option<Arc<furnace_core::scene::assets::AssetCache>>,
 }
@@ -177,12 +182,22 @@ impl Loader {
         let assets = Some(Arc::new(furnace_core::scene::assets::AssetCache::new()));
         let first = Loader { assets: assets.clone(), ..self.clone() };
         let later = Loader { keep_scenes: false, assets, ..self.clone() };
+        // With `####` in the scene's path, a frame's bundle holds its own scene file and what
+        // the frames share, not the other frames' scene files.
+        let scenes: HashSet<String> = range.numbers().map(|n| frame_path(&spec.bundle.scene, n)).collect();
         let mut jobs: Vec<Job> = Vec::new();
         for n in range.numbers() {
             let mut defines = spec.defines.clone();
             defines.insert("frame".into(), n.to_string());
-            let bundle =
-                Bundle { scene: frame_path(&spec.bundle.scene, n), files: spec.bundle.files.clone() };
+            let scene = frame_path(&spec.bundle.scene, n);
+            let files = spec
+                .bundle
+                .files
+                .iter()
+                .filter(|(p, _)| **p == scene || !scenes.contains(*p))
+                .map(|(p, h)| (p.clone(), h.clone()))
+                .collect();
+            let bundle = Bundle { scene, files };
             let frame = JobSpec {
                 bundle,
                 settings: spec.settings.clone(),
@@ -198,6 +213,20 @@ impl Loader {
             let job = loader
                 .new_job(format!("{id}-{n}"), frame, JobState::Queued, created, deadline)
                 .map_err(within)?;
+            if jobs.is_empty() {
+                // Every frame holds what the first does (its chunk plan, and at most two hold
+                // an image at once): a range too large is refused before the others are made.
+                let need = job.held_bytes().saturating_mul(range.count() as usize)
+                    + job.image_bytes().saturating_mul((range.count() as usize).min(MAX_OPEN_FRAMES));
+                if need > self.max_job_bytes {
+                    return Err(CoordError::TooLarge(format!(
+                        "the job's {} frames would hold {:.2} GB of chunk plans and images, more than the coordinator's limit of {:.2} GB (--max-job-memory-gb): fewer frames, more spp_per_chunk or a larger tile_size",
+                        range.count(),
+                        need as f64 / 1e9,
+                        self.max_job_bytes as f64 / 1e9
+                    )));
+                }
+            }
             if let Some(first) = jobs.first() {
                 let (a, b) = (&first.spec.settings, &job.spec.settings);
                 if (a.width, a.height, a.spp) != (b.width, b.height, b.spp) {
@@ -208,6 +237,10 @@ impl Loader {
                 }
             }
             jobs.push(job);
+        }
+        if let Some(assets) = &first.assets {
+            let (hits, misses) = assets.counts();
+            tracing::info!(job = %id, frames = jobs.len(), hits, misses, "frames loaded and checked (files parsed: misses; reused: hits)");
         }
         Ok((id, jobs))
     }
@@ -331,7 +364,11 @@ impl Loader {
     fn restore(&self, max_partial: usize, row: JobRow) -> Result<Job, CoordError> {
         // A job accepted once is not refused now for the memory its scene takes (the limit may
         // have been lowered since).
-        let unlimited = Loader { max_scene_bytes: u64::MAX, ..self.clone() };
+        // A frame of a frame-range job comes back without its scene: workers in this process
+        // load it when they reach the frame (`load_scene`), so a restart does not hold every
+        // frame's scene at once.
+        let keep_scenes = self.keep_scenes && row.spec.frame_of.is_none();
+        let unlimited = Loader { max_scene_bytes: u64::MAX, keep_scenes, ..self.clone() };
         let mut job = unlimited.new_job(row.id, row.spec, row.state, row.created, None)?;
         let id = job.id.clone();
         if let Some(bytes) = self.store.checkpoint(&id) {
@@ -471,6 +508,9 @@ impl Coordinator {
         for (key, id, request) in c.store.keys()? {
             c.keys.insert(key, (id, request));
         }
+        // The frames of a frame-range job share their parsed files while they are restored.
+        let restorer =
+            Loader { assets: Some(Arc::new(furnace_core::scene::assets::AssetCache::new())), ..c.loader() };
         for row in c.store.jobs()? {
             // One job that cannot be restored is logged and left out; the others go on.
             let restored = row.map_err(|(id, e)| (id, CoordError::Internal(e))).and_then(|row| {
@@ -479,7 +519,7 @@ impl Coordinator {
                 // (Its stored status and its row agree on how it ended.)
                 let job = match c.store.final_status(&id).filter(|st| st.state == state) {
                     Some(st) => Ok(Job::finished(row.id, row.spec, row.created, st)),
-                    None => c.restore_job(row),
+                    None => restorer.restore(c.max_partial, row),
                 };
                 job.map(|j| (j, state)).map_err(|e| (id, e))
             });
@@ -547,6 +587,7 @@ impl Coordinator {
             keep_scenes: self.keep_scenes,
             max_scene_bytes: self.max_scene_bytes,
             max_partial: self.max_partial,
+            max_job_bytes: self.max_job_bytes,
             assets: None,
         }
     }
@@ -562,11 +603,6 @@ impl Coordinator {
             }
             other => Ok(other.map(|(id, _)| id.clone())),
         }
-    }
-
-    /// Rebuilds a job after a restart (see [`Loader::restore`]).
-    fn restore_job(&self, row: JobRow) -> Result<Job, CoordError> {
-        self.loader().restore(self.max_partial, row)
     }
 
     /// Submits a job for a scene already loaded in this process. Such a job has no bundle and
@@ -592,10 +628,10 @@ impl Coordinator {
         request: &str,
     ) -> Result<String, CoordError> {
         let held: usize = self.jobs.values().map(Job::held_bytes).sum();
-        // Frames are handed out in order: about two of them hold an image at once.
+        // Frames are handed out in order: at most MAX_OPEN_FRAMES of them hold an image at once.
         let frames = jobs.iter().filter(|j| j.spec.frame_of.is_some()).count();
         let need = jobs.iter().map(Job::held_bytes).sum::<usize>()
-            + jobs.first().map_or(0, Job::image_bytes) * frames.min(2);
+            + jobs.first().map_or(0, Job::image_bytes) * frames.min(MAX_OPEN_FRAMES);
         if held.saturating_add(need) > self.max_job_bytes {
             return Err(CoordError::Busy(format!(
                 "the coordinator holds {:.2} GB of jobs in memory and this one needs {:.2} GB, over its limit of {:.2} GB (--max-job-memory-gb): wait for jobs to end, or pause or cancel some",
@@ -772,7 +808,15 @@ impl Coordinator {
         }
         self.set_state(id, next)?;
         let store = self.store.durable() && next == JobState::Cancelled;
-        Ok(if store { self.job_mut(id)?.snapshot(Duration::ZERO) } else { None })
+        let j = self.job_mut(id)?;
+        if store && j.spec.frame_of.is_some() && j.merged.is_empty() && j.accum.pixels.is_empty() {
+            // A frame cancelled before it began has no image to store (cancelling a range of
+            // thousands of frames would otherwise make and write an image for each): its final
+            // status is all that is kept.
+            self.evict(id, true)?;
+            return Ok(None);
+        }
+        Ok(if store { j.snapshot(Duration::ZERO) } else { None })
     }
 
     fn reprioritise(&mut self, id: &str, priority: i32) -> Result<(), CoordError> {
@@ -809,12 +853,26 @@ impl Coordinator {
     pub fn lease(&mut self, worker: &str, now: Instant) -> Option<Lease> {
         self.expire_leases(now);
         self.seen(worker, now);
+        // A frame-range job has at most MAX_OPEN_FRAMES open (started, not finished): a frame whose
+        // queue waits on its passes being judged (a noise target) lets the next ones start, not
+        // every frame after it, each of which would hold an image.
+        let mut open: HashMap<&str, usize> = HashMap::new();
+        for j in self.jobs.values().filter(|j| j.state == JobState::Running) {
+            if let Some(f) = &j.spec.frame_of {
+                *open.entry(f.job.as_str()).or_default() += 1;
+            }
+        }
+        let may_start = |j: &Job| match (&j.spec.frame_of, j.state) {
+            (Some(f), JobState::Queued) => open.get(f.job.as_str()).copied().unwrap_or(0) < MAX_OPEN_FRAMES,
+            _ => true,
+        };
         // The frames of a frame-range job go in frame order. One pass (no sort): a frame-range
         // job of thousands of frames is thousands of jobs here.
         let id = self
             .jobs
             .values()
             .filter(|j| matches!(j.state, JobState::Queued | JobState::Running))
+            .filter(|j| may_start(j))
             // Not before its row (and its folder, where its partials go) is stored.
             .filter(|j| !self.unwritten.contains_key(&j.id))
             .filter(|j| j.failures.get(worker).copied().unwrap_or(0) < MAX_FAILURES_PER_WORKER)
@@ -1202,11 +1260,14 @@ impl Coordinator {
         st.eta_seconds = (st.samples_per_second > 0.0).then(|| left as f64 / st.samples_per_second);
         let states: Vec<JobState> = all.iter().map(|(_, f)| f.state).collect();
         let any = |s: JobState| states.contains(&s);
+        // A frame cancelled on its own (through its frame job's id) leaves the others going:
+        // the job is cancelled once none is left to render.
+        let ended = |s: JobState| matches!(s, JobState::Done | JobState::Cancelled);
         st.state = if states.iter().all(|&s| s == JobState::Done) {
             JobState::Done
-        } else if any(JobState::Cancelled) {
+        } else if states.iter().all(|&s| ended(s)) {
             JobState::Cancelled
-        } else if states.iter().all(|&s| matches!(s, JobState::Done | JobState::Paused)) {
+        } else if states.iter().all(|&s| ended(s) || s == JobState::Paused) {
             JobState::Paused
         } else if any(JobState::Running) || any(JobState::Done) {
             JobState::Running

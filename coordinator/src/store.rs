@@ -736,9 +736,18 @@ impl Store for MemStore {
     }
 }
 
-/// Sets a file's or folder's modification time to now (if it exists).
+/// Sets a file's or folder's modification time to now (if it exists), unless it was set in
+/// the last ten minutes: garbage collection takes only what was unused for an hour, and a file
+/// left as it is keeps its identity for the asset cache (`scene::assets`, which knows a file by
+/// its modification time among others), so the frames of one submission parse it once.
 fn touch(path: &Path) {
     let now = std::time::SystemTime::now();
+    let recent = std::fs::metadata(path)
+        .and_then(|m| m.modified())
+        .is_ok_and(|t| now.duration_since(t).is_ok_and(|d| d < std::time::Duration::from_secs(600)));
+    if recent {
+        return;
+    }
     let f = if path.is_dir() {
         std::fs::File::open(path)
     } else {
@@ -949,6 +958,30 @@ mod tests {
         assert!(s.save_checkpoint("j", &bytes(b"late"), &[], None).is_err());
         assert!(s.save_status("j", &s_status()).is_err());
         assert!(!dir.join("jobs/j").exists());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A file touched in the last ten minutes keeps its modification time: the frames of one
+    /// submission find it unchanged in the asset cache (the time is part of a file's identity
+    /// there). An older one is brought up to now, for garbage collection.
+    #[test]
+    fn touch_freshens_old_files_and_leaves_recent_ones() {
+        let dir = scratch("touch");
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("f");
+        std::fs::write(&path, b"x").unwrap();
+        let mtime = || std::fs::metadata(&path).unwrap().modified().unwrap();
+        let set = |t: std::time::SystemTime| {
+            std::fs::File::options().append(true).open(&path).unwrap().set_modified(t).unwrap()
+        };
+        let now = std::time::SystemTime::now();
+        let recent = now - std::time::Duration::from_secs(60);
+        set(recent);
+        touch(&path);
+        assert_eq!(mtime(), recent, "a recent file's time changed");
+        set(now - std::time::Duration::from_secs(7200));
+        touch(&path);
+        assert!(mtime() >= now, "an old file was not freshened");
         std::fs::remove_dir_all(&dir).ok();
     }
 }
