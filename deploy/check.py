@@ -196,7 +196,7 @@ def dockerfile_stages():
             m = re.match(r"(\S+)(?:\s+AS\s+(\S+))?", rest, re.I)
             cur = m.group(2)
             stages[cur] = {"from": m.group(1), "ops": []}
-        else:
+        elif cur is not None:  # (a global ARG before the first FROM belongs to no stage)
             stages[cur]["ops"].append((op.upper(), rest.strip()))
     return stages
 
@@ -289,6 +289,32 @@ def check_compose(furnace, stages, metrics_text):
     return used
 
 
+def check_compose_host(stages):
+    """compose.host.yaml: compose.yaml's coordinator and workers on the host's network, the
+    coordinator on loopback at the port its HEALTHCHECK probes, the workers pointed there."""
+    base = os.path.join(ROOT, "deploy/compose")
+    c = yaml.safe_load(open(os.path.join(base, "compose.host.yaml")))
+    main_file = yaml.safe_load(open(os.path.join(base, "compose.yaml")))
+    s = c["services"]
+    for name in ["coordinator", "worker"]:
+        if not check(name in s, f"compose.host: no service {name}"):
+            return
+        check(s[name].get("network_mode") == "host", f"compose.host: {name} is not on the host's network")
+        check(s[name]["build"]["target"] == main_file["services"][name]["build"]["target"], f"compose.host: {name} builds another target")
+        check(s[name]["image"] == main_file["services"][name]["image"], f"compose.host: {name} is another image")
+        check("ports" not in s[name], f"compose.host: {name} publishes ports on the host's network")
+        check("FURNACE_TOKEN" in s[name]["environment"], f"compose.host: {name} has no token")
+    bind = s["coordinator"]["environment"]["FURNACE_BIND"]
+    check(bind == f"127.0.0.1:{PORT}", f"compose.host: the coordinator binds {bind}, not loopback at {PORT}")
+    hc = resolved(stages, "coordinator", "HEALTHCHECK")
+    check(f"127.0.0.1:{PORT}/" in hc, "compose.host: the coordinator's HEALTHCHECK probes another address")
+    check(s["worker"]["environment"]["FURNACE_COORDINATOR"] == f"http://{bind}", "compose.host: workers do not reach the coordinator")
+    check(s["worker"].get("depends_on", {}).get("coordinator", {}).get("condition") == "service_healthy", "compose.host: workers start before the coordinator is healthy")
+    check(s["worker"].get("stop_grace_period", "10s")[-1] in "mh", "compose.host: workers need a stop grace period of minutes")
+    prom = yaml.safe_load(open(os.path.join(base, "prometheus.host.yml")))
+    check(prom["scrape_configs"][0]["static_configs"][0]["targets"] == [bind], "compose.host: prometheus does not scrape the coordinator")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--furnace", required=True)
@@ -297,6 +323,7 @@ def main():
     overlays = check_kubernetes(a.furnace)
     stages = check_docker(a.furnace)
     used = check_compose(a.furnace, stages, open(a.metrics).read())
+    check_compose_host(stages)
     if failures:
         print("\n".join(failures))
         sys.exit(1)

@@ -81,7 +81,8 @@ pub struct WorkerArgs {
     pub slots: usize,
     #[arg(long, env = "FURNACE_TOKEN")]
     pub token: Option<String>,
-    /// Name shown in job status (default: host and process id).
+    /// Name shown in job status (default: host and process id, and in a container a random
+    /// suffix).
     #[arg(long, env = "FURNACE_NAME")]
     pub name: Option<String>,
     /// Scene bundle cache, private to the user (default: $XDG_CACHE_HOME/furnace or
@@ -280,7 +281,7 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
         link: Arc::new(link),
         threads: a.threads.unwrap_or(0),
         slots: a.slots,
-        name: a.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
+        name: a.name.unwrap_or_else(|| default_worker_name(&host)),
         // Lease requests wait at the coordinator for work (long polling); this is the pause
         // between two of them.
         poll: Duration::from_millis(100),
@@ -290,6 +291,19 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
     let n = furnace_worker::run(cfg)?;
     tracing::info!("worker stopped after {n} chunks");
     Ok(())
+}
+
+/// Host name and process id; in a container (process 1), where workers on the host's network
+/// share the host's name, a few random hex digits too, so that two are never one worker to
+/// the coordinator.
+fn default_worker_name(host: &str) -> String {
+    let pid = std::process::id();
+    if pid != 1 {
+        return format!("{host}-{pid}");
+    }
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+    let salt = blake3::hash(format!("{nanos:?}-{:p}", &nanos).as_bytes()).to_hex();
+    format!("{host}-1-{}", &salt[..6])
 }
 
 struct Api {
