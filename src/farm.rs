@@ -1,6 +1,6 @@
 //! The farm's commands: `serve`, `worker`, `submit`, `status`.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -365,6 +365,19 @@ fn bundle_of(
     let mut union = Bundle { scene: String::new(), files: BTreeMap::new() };
     let mut local = BTreeMap::new();
     let mut first = None;
+    // A file the frames share is hashed once (known by its path, length and modification time:
+    // one changed meanwhile is hashed again, and refused below).
+    let mut hashed: HashMap<(PathBuf, u64, Option<std::time::SystemTime>), String> = HashMap::new();
+    let mut hash = |p: &std::path::Path| -> std::io::Result<String> {
+        let m = std::fs::metadata(p)?;
+        let key = (p.to_path_buf(), m.len(), m.modified().ok());
+        if let Some(h) = hashed.get(&key) {
+            return Ok(h.clone());
+        }
+        let h = furnace_proto::hash_file(p)?;
+        hashed.insert(key, h.clone());
+        Ok(h)
+    };
     let bar = indicatif::ProgressBar::new(range.count());
     bar.set_style(
         indicatif::ProgressStyle::with_template("checking frames {bar:40} {pos}/{len}")
@@ -376,7 +389,8 @@ fn bundle_of(
         defs.retain(|(k, _)| k != "frame");
         defs.push(("frame".into(), n.to_string()));
         let loaded = Scene::load_with(&path, &defs, &limits).with_context(|| format!("frame {n}"))?;
-        let (bundle, files) = Bundle::of_scene(&path, &loaded).map_err(anyhow::Error::msg)?;
+        let (bundle, files) =
+            Bundle::of_scene_hashing(&path, &loaded, &mut hash).map_err(anyhow::Error::msg)?;
         for (rel, file) in files {
             let hash = &bundle.files[&rel];
             if union.files.insert(rel.clone(), hash.clone()).is_some_and(|h| h != *hash) {

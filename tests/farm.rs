@@ -923,6 +923,17 @@ fn frame_ranges_are_bounded_in_memory_and_cancel_cheaply() {
     assert!(coord.lock().unwrap().job_ids().is_empty());
     coord.lock().unwrap().max_job_bytes = 8 << 30;
 
+    // A range out of time says how far its check came.
+    let late = JobSpec {
+        frames: Some(furnace_proto::FrameRange::parse("0-2").unwrap()),
+        ..JobSpec::new(bundle.clone(), settings.clone())
+    };
+    let e = state::submit(&coord, late, None, Some(Instant::now())).unwrap_err();
+    assert!(
+        matches!(&e, CoordError::TooLarge(m) if m.contains("the 3 frames") && m.contains("frame 0: the request's time ran out")),
+        "{e:?}"
+    );
+
     // A noise-target range: each frame's queue holds only its first pass until it is judged.
     let noisy = JobSettings { spp: 8, spp_per_chunk: 2, target_rel_error: Some(1e-6), ..settings.clone() };
     let spec = JobSpec {

@@ -1723,12 +1723,20 @@ pub fn submit(
     }
     let _loading = Loading(coord, ticket);
     // A load past the deadline stops there (its error says so): either way, nothing is submitted.
+    let frames = spec.frames.map(|r| r.count());
     let job = loader.submitted(spec, key, deadline);
     if deadline.is_some_and(|d| Instant::now() > d) {
-        return Err(CoordError::TooLarge(format!(
-            "the scene took {:.1} s to load, longer than the request may take; nothing was submitted",
-            started.elapsed().as_secs_f64()
-        )));
+        let took = started.elapsed().as_secs_f64();
+        return Err(CoordError::TooLarge(match frames {
+            // Where it stopped: the frame whose load ran out of time.
+            Some(n) => format!(
+                "loading and checking the {n} frames took {took:.1} s, longer than the request may take{}; nothing was submitted",
+                job.as_ref().err().map(|e| format!(" ({e})")).unwrap_or_default()
+            ),
+            None => format!(
+                "the scene took {took:.1} s to load, longer than the request may take; nothing was submitted"
+            ),
+        }));
     }
     let (id, jobs) = job?;
     let id = loop {

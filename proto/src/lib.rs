@@ -136,6 +136,16 @@ impl Bundle {
         scene_path: &std::path::Path,
         scene: &furnace_core::Scene,
     ) -> Result<(Bundle, Vec<(String, std::path::PathBuf)>), String> {
+        Bundle::of_scene_hashing(scene_path, scene, &mut |p| hash_file(p))
+    }
+
+    /// [`Bundle::of_scene`] with the files hashed by `hash` (given each file's canonical path):
+    /// the frames of a frame range hash the files they share once.
+    pub fn of_scene_hashing(
+        scene_path: &std::path::Path,
+        scene: &furnace_core::Scene,
+        hash: &mut dyn FnMut(&std::path::Path) -> std::io::Result<String>,
+    ) -> Result<(Bundle, Vec<(String, std::path::PathBuf)>), String> {
         let canon = |p: &std::path::Path| p.canonicalize().map_err(|e| format!("{}: {e}", p.display()));
         let scene_file = canon(scene_path)?;
         let dir = scene_file.parent().ok_or("the scene file has no folder")?.to_path_buf();
@@ -151,7 +161,7 @@ impl Bundle {
                 .map_err(|_| format!("{} is outside the scene's folder {}", p.display(), dir.display()))?
                 .to_string_lossy()
                 .replace('\\', "/");
-            let hash = hash_file(&p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
+            let hash = hash(&p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
             if i == 0 {
                 bundle.scene = rel.clone();
             }
