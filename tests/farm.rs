@@ -973,6 +973,15 @@ fn frame_ranges_are_bounded_in_memory_and_cancel_cheaply() {
         let st = c.status(&job).unwrap();
         assert_eq!(st.state, JobState::Cancelled);
         assert!(st.frames.iter().all(|f| f.state == JobState::Cancelled), "{:?}", st.frames);
+        for n in 4..=7 {
+            // Restored from its status alone: not loaded again, no image written at start.
+            let frame = c.frame_job(&job, n).unwrap();
+            assert!(c.store().checkpoint(&frame).is_none(), "frame {n}: an image was written at restart");
+            // Its preview is black, not an error.
+            let image = c.image(&frame).unwrap();
+            assert_eq!((image.width, image.height), (40, 32));
+            assert!(image.data.iter().all(|v| v.max_element() == 0.0 && v.min_element() == 0.0));
+        }
     }
 
     // Frames of `####` files: each frame's bundle holds its own scene file only.

@@ -214,8 +214,8 @@ impl Loader {
                 .new_job(format!("{id}-{n}"), frame, JobState::Queued, created, deadline)
                 .map_err(within)?;
             if jobs.is_empty() {
-                // Every frame holds what the first does (its chunk plan, and at most two hold
-                // an image at once): a range too large is refused before the others are made.
+                // Every frame holds what the first does (its chunk plan; at most
+                // MAX_OPEN_FRAMES hold an image at once): a range too large is refused before the others are made.
                 let need = job.held_bytes().saturating_mul(range.count() as usize)
                     + job.image_bytes().saturating_mul((range.count() as usize).min(MAX_OPEN_FRAMES));
                 if need > self.max_job_bytes {
@@ -812,8 +812,11 @@ impl Coordinator {
         if store && j.spec.frame_of.is_some() && j.merged.is_empty() && j.accum.pixels.is_empty() {
             // A frame cancelled before it began has no image to store (cancelling a range of
             // thousands of frames would otherwise make and write an image for each): its final
-            // status is all that is kept.
-            self.evict(id, true)?;
+            // status is all that is kept. If it cannot be stored, the job is cancelled all the
+            // same (a restart finds its row cancelled and finishes it then).
+            if let Err(e) = self.evict(id, true) {
+                tracing::error!(job = %id, "cannot store the cancelled frame's status: {e}");
+            }
             return Ok(None);
         }
         Ok(if store { j.snapshot(Duration::ZERO) } else { None })
@@ -1333,6 +1336,10 @@ impl Coordinator {
                 width: j.spec.settings.width,
                 height: j.spec.settings.height,
             },
+            // A frame cancelled before its first chunk stored no image: black.
+            Some(_) if j.state == JobState::Cancelled && !self.store.result_path(id).exists() => {
+                Picture::Developed(Accum::new(0, 0, j.spec.settings.width, j.spec.settings.height).develop())
+            }
             Some(_) => Picture::File(self.store.result_path(id)),
             // Black until its first chunk.
             None if j.accum.pixels.is_empty() => {

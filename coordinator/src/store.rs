@@ -462,7 +462,9 @@ impl Store for DiskStore {
     fn final_status(&self, job: &str) -> Option<JobStatus> {
         let bytes = std::fs::read(self.job_dir(job).join("status.json")).ok()?;
         let status = serde_json::from_slice::<JobStatus>(&bytes).ok()?;
-        self.result_path(job).exists().then_some(status)
+        // A job cancelled before its first chunk ends with its status alone (no image).
+        let imageless = status.state == JobState::Cancelled && status.chunks_done == 0;
+        (imageless || self.result_path(job).exists()).then_some(status)
     }
 
     fn result_path(&self, job: &str) -> PathBuf {

@@ -42,9 +42,20 @@ elif "$docker" compose version >/dev/null 2>&1; then compose_cmd=("$docker" comp
 else skip "no docker-compose (apt-get install docker-compose)"; fi
 mkdir -p "$work"
 
+compose() { FURNACE_TOKEN=$token "${compose_cmd[@]}" -p "$project" -f deploy/compose/compose.host.yaml "$@"; }
+started_dockerd=""
+brought_up=""
+cleanup() {
+    if [ -n "$brought_up" ]; then compose down -v --remove-orphans >/dev/null 2>&1 || true; fi
+    if [ -n "$started_dockerd" ]; then kill "$started_dockerd" 2>/dev/null || true; wait "$started_dockerd" 2>/dev/null || true; fi
+}
+trap cleanup EXIT
+if curl -s -o /dev/null "$api/readyz"; then
+    fail "something already answers on $api: the coordinator's container would not get the port (stop it first)"
+fi
+
 # The engine: the one running, or one started here (no bridge, no iptables: the containers use
 # the host's network).
-started_dockerd=""
 if ! "$docker" info >/dev/null 2>&1; then
     command -v dockerd >/dev/null || skip "no Docker engine running and no dockerd (apt-get install docker.io)"
     [ "$(id -u)" = 0 ] || skip "no Docker engine running, and starting dockerd needs root"
@@ -58,12 +69,6 @@ if ! "$docker" info >/dev/null 2>&1; then
     for _ in $(seq 60); do "$docker" info >/dev/null 2>&1 && break; sleep 0.5; done
     "$docker" info >/dev/null 2>&1 || skip "dockerd did not start: $(tail -n 3 "$work/dockerd.log" | tr '\n' ' ')"
 fi
-compose() { FURNACE_TOKEN=$token "${compose_cmd[@]}" -p "$project" -f deploy/compose/compose.host.yaml "$@"; }
-cleanup() {
-    compose down -v --remove-orphans >/dev/null 2>&1 || true
-    if [ -n "$started_dockerd" ]; then kill "$started_dockerd" 2>/dev/null || true; wait "$started_dockerd" 2>/dev/null || true; fi
-}
-trap cleanup EXIT
 
 # The base image, made from Debian's packages where no registry is reachable.
 if ! "$docker" image inspect debian:bookworm-slim >/dev/null 2>&1; then
@@ -104,16 +109,16 @@ wait_healthy() { # CONTAINER... ; prints the seconds it took
         if [ $ok = 1 ]; then since "$t0"; return 0; fi
         sleep 0.5
     done
-    for c in "$@"; do echo "$c: $(health "$c")"; "$docker" logs --tail 5 "$c" 2>&1; done
+    for c in "$@"; do echo "$c: $(health "$c")" >&2; "$docker" logs --tail 5 "$c" >&2 2>&1; done
     return 1
 }
 get() { curl -fsS -H "Authorization: Bearer $token" "$api$1"; }
 field() { python3 -c "import json, sys; print(json.load(sys.stdin)$1)"; }
 
-if curl -s -o /dev/null "$api/readyz"; then
-    fail "something already answers on $api: the coordinator's container would not get the port (stop it first)"
-fi
 step "compose up: a coordinator and two workers"
+# What an interrupted earlier run of this test left (the port is free, so none is running).
+compose down -v --remove-orphans >/dev/null 2>&1 || true
+brought_up=1
 t0=$(date +%s.%N)
 compose up -d --no-build --scale worker=2 coordinator worker >"$work/up.log" 2>&1 || { cat "$work/up.log"; fail "compose up"; }
 ready() { # seconds from $1 until the coordinator answers /readyz
@@ -132,9 +137,9 @@ rm -rf "$out"
 mkdir -p "$out"
 scene=tests/scenes/cbox.xml
 step "furnace submit --wait from the host, against furnace render"
-"$bin" submit "$scene" --coordinator "$api" --token "$token" --spp 16 --tile 64 --spp-per-chunk 4 \
-    --wait -o "$out/farm.exr" >"$out/submit-a.log" 2>&1 || { cat "$out/submit-a.log"; fail "submit --wait"; }
-"$bin" render "$scene" --spp 16 -o "$out/render.exr" >/dev/null 2>&1
+timeout 600 "$bin" submit "$scene" --coordinator "$api" --token "$token" --spp 16 --tile 64 --spp-per-chunk 4 \
+    --wait -o "$out/farm.exr" >"$out/submit-a.log" 2>&1 || { cat "$out/submit-a.log"; fail "submit --wait (or its 600 s)"; }
+"$bin" render "$scene" --spp 16 -o "$out/render.exr" >"$out/render.log" 2>&1 || { cat "$out/render.log"; fail "furnace render"; }
 cmp "$out/farm.exr" "$out/render.exr" || fail "the farm's EXR differs from furnace render's"
 step "byte-identical to furnace render ($(stat -c %s "$out/farm.exr") bytes)"
 
@@ -144,13 +149,13 @@ step "all three HEALTHCHECKs healthy"
 # A longer job; once both workers hold chunks, one is stopped.
 job=$("$bin" submit "$scene" --coordinator "$api" --token "$token" --spp 512 --tile 64 --spp-per-chunk 8)
 for _ in $(seq 200); do
-    n=$(get "/v1/jobs/$job" | field "['workers'].__len__()")
+    n=$(get "/v1/jobs/$job" | field "['workers'].__len__()") || fail "cannot read job $job's status"
     [ "$n" -ge 2 ] && break
     sleep 0.1
 done
 [ "$n" -ge 2 ] || fail "the two workers never both held a chunk of job $job"
 step "docker stop of a worker holding a chunk"
-"$docker" stop -t 300 "${workers[1]}" >/dev/null
+"$docker" stop -t 600 "${workers[1]}" >/dev/null
 code=$("$docker" inspect -f '{{.State.ExitCode}}' "${workers[1]}")
 logs=$("$docker" logs "${workers[1]}" 2>&1)
 [ "$code" = 0 ] || fail "the stopped worker exited with $code"
@@ -177,7 +182,7 @@ for _ in $(seq 600); do
 done
 [ "$state" = done ] || fail "job $job did not finish after the restart: $state"
 get "/v1/jobs/$job/result.exr" >"$out/restarted.exr"
-"$bin" render "$scene" --spp 512 -o "$out/render512.exr" >/dev/null 2>&1
+"$bin" render "$scene" --spp 512 -o "$out/render512.exr" >"$out/render.log" 2>&1 || { cat "$out/render.log"; fail "furnace render"; }
 cmp "$out/restarted.exr" "$out/render512.exr" || fail "job $job's result differs from furnace render's"
 step "job $job kept across the restart, byte-identical to furnace render"
 
