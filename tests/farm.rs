@@ -934,6 +934,25 @@ fn frame_ranges_are_bounded_in_memory_and_cancel_cheaply() {
         "{e:?}"
     );
 
+    // A frame every worker has failed on too often holds no open slot: with one worker that
+    // fails everything, the range goes on frame after frame instead of stopping at frame 3.
+    let broken = JobSpec {
+        frames: Some(furnace_proto::FrameRange::parse("0-4").unwrap()),
+        ..JobSpec::new(bundle.clone(), JobSettings { spp: 2, spp_per_chunk: 2, ..settings.clone() })
+    };
+    let (broken, _) = state::submit(&coord, broken, None, None).unwrap();
+    let mut reached = 0;
+    for _ in 0..100 {
+        let mut c = coord.lock().unwrap();
+        let Some(l) = c.lease("w", Instant::now()) else { break };
+        reached = reached.max(l.job.rsplit('-').next().unwrap().parse::<u32>().unwrap());
+        c.fail(&l.job, l.chunk.id, l.epoch, "broken").unwrap();
+    }
+    assert_eq!(reached, 4, "the range stopped at frame {reached}");
+    state::delete(&coord, &broken).unwrap();
+    // (Deleting it removed the files no other job used.)
+    assert_eq!(store_frames(&coord, &[0]), bundle);
+
     // A noise-target range: each frame's queue holds only its first pass until it is judged.
     let noisy = JobSettings { spp: 8, spp_per_chunk: 2, target_rel_error: Some(1e-6), ..settings.clone() };
     let spec = JobSpec {

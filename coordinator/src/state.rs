@@ -859,9 +859,18 @@ impl Coordinator {
         // A frame-range job has at most MAX_OPEN_FRAMES open (started, not finished): a frame whose
         // queue waits on its passes being judged (a noise target) lets the next ones start, not
         // every frame after it, each of which would hold an image.
+        // A frame that every worker known has failed too often (it gets no more of them) holds
+        // no slot: three broken frames would otherwise stop the rest of the range.
+        let given_up = |j: &Job| {
+            !j.failures.is_empty()
+                && self
+                    .workers
+                    .keys()
+                    .all(|w| j.failures.get(w).copied().unwrap_or(0) >= MAX_FAILURES_PER_WORKER)
+        };
         let mut open: HashMap<&str, usize> = HashMap::new();
         for j in self.jobs.values().filter(|j| j.state == JobState::Running) {
-            if let Some(f) = &j.spec.frame_of {
+            if let Some(f) = j.spec.frame_of.as_ref().filter(|_| !given_up(j)) {
                 *open.entry(f.job.as_str()).or_default() += 1;
             }
         }
