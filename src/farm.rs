@@ -301,9 +301,10 @@ fn default_worker_name(host: &str) -> String {
     if pid != 1 {
         return format!("{host}-{pid}");
     }
-    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
-    let salt = blake3::hash(format!("{nanos:?}-{:p}", &nanos).as_bytes()).to_hex();
-    format!("{host}-1-{}", &salt[..6])
+    use std::hash::{BuildHasher, Hasher};
+    // The standard library's randomly keyed hasher: a random number without a crate.
+    let salt = std::collections::hash_map::RandomState::new().build_hasher().finish();
+    format!("{host}-1-{:06x}", salt & 0xff_ffff)
 }
 
 struct Api {

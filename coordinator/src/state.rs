@@ -38,6 +38,11 @@ pub const MAX_JOB_WORKERS: usize = 1000;
 /// Most frames of one frame-range job started and not yet finished at once.
 pub const MAX_OPEN_FRAMES: usize = 3;
 
+/// Bytes the images of a frame range of `frames` frames, each of `image` bytes, hold at once.
+fn open_images_bytes(image: usize, frames: usize) -> usize {
+    image.saturating_mul(frames.min(MAX_OPEN_FRAMES))
+}
+
 /// What the coordinator remembers of a worker: it exists only in the requests it makes.
 struct WorkerSeen {
     last_seen: Instant,
@@ -216,8 +221,9 @@ impl Loader {
             if jobs.is_empty() {
                 // Every frame holds what the first does (its chunk plan; at most
                 // MAX_OPEN_FRAMES hold an image at once): a range too large is refused before the others are made.
-                let need = job.held_bytes().saturating_mul(range.count() as usize)
-                    + job.image_bytes().saturating_mul((range.count() as usize).min(MAX_OPEN_FRAMES));
+                let frames = range.count() as usize;
+                let need =
+                    job.held_bytes().saturating_mul(frames) + open_images_bytes(job.image_bytes(), frames);
                 if need > self.max_job_bytes {
                     return Err(CoordError::TooLarge(format!(
                         "the job's {} frames would hold {:.2} GB of chunk plans and images, more than the coordinator's limit of {:.2} GB (--max-job-memory-gb): fewer frames, more spp_per_chunk or a larger tile_size",
@@ -631,7 +637,7 @@ impl Coordinator {
         // Frames are handed out in order: at most MAX_OPEN_FRAMES of them hold an image at once.
         let frames = jobs.iter().filter(|j| j.spec.frame_of.is_some()).count();
         let need = jobs.iter().map(Job::held_bytes).sum::<usize>()
-            + jobs.first().map_or(0, Job::image_bytes) * frames.min(MAX_OPEN_FRAMES);
+            + open_images_bytes(jobs.first().map_or(0, Job::image_bytes), frames);
         if held.saturating_add(need) > self.max_job_bytes {
             return Err(CoordError::Busy(format!(
                 "the coordinator holds {:.2} GB of jobs in memory and this one needs {:.2} GB, over its limit of {:.2} GB (--max-job-memory-gb): wait for jobs to end, or pause or cancel some",
@@ -809,13 +815,13 @@ impl Coordinator {
         self.set_state(id, next)?;
         let store = self.store.durable() && next == JobState::Cancelled;
         let j = self.job_mut(id)?;
-        if store && j.spec.frame_of.is_some() && j.merged.is_empty() && j.accum.pixels.is_empty() {
-            // A frame cancelled before it began has no image to store (cancelling a range of
-            // thousands of frames would otherwise make and write an image for each): its final
-            // status is all that is kept. If it cannot be stored, the job is cancelled all the
+        if store && j.merged.is_empty() {
+            // A job cancelled before its first chunk has no image to store (cancelling a range
+            // of thousands of frames would otherwise make and write an image for each): its
+            // final status is all that is kept (see `Store::final_status`). If it cannot be stored, the job is cancelled all the
             // same (a restart finds its row cancelled and finishes it then).
             if let Err(e) = self.evict(id, true) {
-                tracing::error!(job = %id, "cannot store the cancelled frame's status: {e}");
+                tracing::error!(job = %id, "cannot store the cancelled job's status: {e}");
             }
             return Ok(None);
         }
@@ -869,9 +875,12 @@ impl Coordinator {
                     .all(|w| j.failures.get(w).copied().unwrap_or(0) >= MAX_FAILURES_PER_WORKER)
         };
         let mut open: HashMap<&str, usize> = HashMap::new();
-        for j in self.jobs.values().filter(|j| j.state == JobState::Running) {
-            if let Some(f) = j.spec.frame_of.as_ref().filter(|_| !given_up(j)) {
-                *open.entry(f.job.as_str()).or_default() += 1;
+        // (Only a coordinator holding frame ranges pays for this pass.)
+        if !self.groups.is_empty() {
+            for j in self.jobs.values().filter(|j| j.state == JobState::Running && !given_up(j)) {
+                if let Some(f) = &j.spec.frame_of {
+                    *open.entry(f.job.as_str()).or_default() += 1;
+                }
             }
         }
         let may_start = |j: &Job| match (&j.spec.frame_of, j.state) {
@@ -1338,6 +1347,8 @@ impl Coordinator {
             return self.picture(frame);
         }
         let j = self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?;
+        let black =
+            || Picture::Developed(Accum::new(0, 0, j.spec.settings.width, j.spec.settings.height).develop());
         Ok(match j.released {
             Some(_) if j.state == JobState::Paused => Picture::Checkpoint {
                 store: self.store.clone(),
@@ -1345,15 +1356,11 @@ impl Coordinator {
                 width: j.spec.settings.width,
                 height: j.spec.settings.height,
             },
-            // A frame cancelled before its first chunk stored no image: black.
-            Some(_) if j.state == JobState::Cancelled && !self.store.result_path(id).exists() => {
-                Picture::Developed(Accum::new(0, 0, j.spec.settings.width, j.spec.settings.height).develop())
-            }
+            // A job cancelled before its first chunk stored no image.
+            Some(_) if j.state == JobState::Cancelled && !self.store.result_path(id).exists() => black(),
             Some(_) => Picture::File(self.store.result_path(id)),
             // Black until its first chunk.
-            None if j.accum.pixels.is_empty() => {
-                Picture::Developed(Accum::new(0, 0, j.spec.settings.width, j.spec.settings.height).develop())
-            }
+            None if j.accum.pixels.is_empty() => black(),
             None => Picture::Developed(j.accum.develop()),
         })
     }

@@ -92,7 +92,8 @@ pub trait Store: Send + Sync {
     fn quarantine(&self, job: &str, chunk: Option<u32>) -> String;
     /// Stores the final status of a finished job (so that a restart need not load its scene).
     fn save_status(&self, job: &str, status: &JobStatus) -> Result<(), CoordError>;
-    /// A finished job's final status, when it and its result are stored.
+    /// A finished job's final status, when it and its result are stored (a job cancelled
+    /// before its first chunk has its status alone).
     fn final_status(&self, job: &str) -> Option<JobStatus>;
     /// Where a finished job's result is.
     fn result_path(&self, job: &str) -> PathBuf;
