@@ -10,6 +10,8 @@
 //! bounce and deeper) are therefore independent uniform numbers hashed from the same
 //! coordinates: ~10 ns, equally deterministic.
 
+use sobol_burley::parts::{self, Int4};
+
 use crate::math::{hash_u32, hash_words};
 
 /// 4-D sets drawn from Owen-scrambled Sobol; later sets are hashed uniform numbers.
@@ -54,12 +56,39 @@ impl SampleStream {
     #[inline]
     fn set_4d(&self, set: u32) -> [f32; 4] {
         if set < SOBOL_SETS {
-            return sobol_burley::sample_4d(self.index, 0, hash_words(&[self.seed, set]));
+            return sobol_set0(self.index, hash_words(&[self.seed, set]));
         }
         let h = hash_words(&[self.seed, set, self.index]);
         let unit = |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
         [unit(1), unit(2), unit(3), unit(4)]
     }
+}
+
+/// The first 4-D Sobol set of `sobol_burley` as two tables of 256 points: the (reversed) Sobol
+/// matrix is linear over XOR, so the point of a 16-bit index is the XOR of its high byte's
+/// point and its low byte's. 8 KiB, built once from the crate's own generator.
+struct SobolTables {
+    hi: [Int4; 256],
+    lo: [Int4; 256],
+}
+
+static SOBOL_TABLES: std::sync::LazyLock<SobolTables> = std::sync::LazyLock::new(|| SobolTables {
+    hi: std::array::from_fn(|h| parts::sobol_int4_rev((h as u32) << 24, 0)),
+    lo: std::array::from_fn(|l| parts::sobol_int4_rev((l as u32) << 16, 0)),
+});
+
+/// `sobol_burley::sample_4d(index, 0, seed)`, bit for bit (`sobol_set0_is_sobol_burleys`), with
+/// the per-bit loop over the index replaced by two table lookups. The same steps as the crate:
+/// shuffle the index by a nested uniform scramble, take its Sobol point, Owen-scramble each
+/// dimension, un-reverse and convert.
+#[inline]
+fn sobol_set0(index: u32, seed: u32) -> [f32; 4] {
+    let rev = parts::owen_scramble_rev(index.reverse_bits(), parts::hash(seed ^ 0x79c6_8e4a));
+    let t = &*SOBOL_TABLES;
+    let sobol = t.hi[(rev >> 24) as usize] ^ t.lo[((rev >> 16) & 0xff) as usize];
+    let scramble = Int4::from([seed.wrapping_mul(0x9c8f_2d3b); 4])
+        ^ Int4::from([0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8]);
+    parts::owen_scramble_int4_rev(sobol, parts::hash_int4(scramble)).reverse_bits().to_f32_norm()
 }
 
 /// A 4-D set taken from a [`SampleStream`] and computed on first use.
@@ -120,6 +149,18 @@ mod tests {
             let mut late = s.defer_4d(); // a hashed set (past SOBOL_SETS)
             assert_eq!(s.next_4d(), all[5]);
             assert_eq!(late.get(&s), all[4]);
+        }
+    }
+
+    /// The table-driven set is the crate's, bit for bit: every index of the sequence, for
+    /// several seeds.
+    #[test]
+    fn sobol_set0_is_sobol_burleys() {
+        for seed in [0u32, 1, 0x9e37_79b9, 0xdead_beef, u32::MAX] {
+            for index in 0..SEQUENCE_LEN {
+                let (a, b) = (sobol_set0(index, seed), sobol_burley::sample_4d(index, 0, seed));
+                assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "index {index}, seed {seed:#x}");
+            }
         }
     }
 
