@@ -19,7 +19,7 @@ use glam::{Vec2, Vec3};
 
 use super::microfacet::fresnel_dielectric;
 use super::BsdfSample;
-use crate::math::{luminance, safe_asin, safe_sqrt, Rgb, PI};
+use crate::math::{fast_atan2, luminance, safe_asin, safe_sqrt, Rgb, PI};
 
 const P_MAX: usize = 3;
 
@@ -160,7 +160,7 @@ impl Hair {
 
     fn angles(w: Vec3) -> (f32, f32, f32) {
         let sin = w.x.clamp(-1.0, 1.0);
-        (sin, safe_sqrt(1.0 - sin * sin), w.z.atan2(w.y))
+        (sin, safe_sqrt(1.0 - sin * sin), fast_atan2(w.z, w.y))
     }
 
     /// f |cos| summed over lobes and the pdf of `wi`, for `wo` given by its angles and

@@ -36,7 +36,7 @@ use std::sync::Arc;
 
 use glam::{Mat3, Vec2, Vec3};
 
-use crate::math::{square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
+use crate::math::{fast_atan2, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
 use crate::texture::{Bitmap, FilterType};
 
 /// The largest f64 below 1: where a rescaled sample number must stay.
@@ -202,13 +202,13 @@ impl EnvMap {
     #[inline]
     fn uv(&self, d: Vec3) -> (Vec2, f32) {
         let l = self.to_local * d;
-        let mut u = l.x.atan2(-l.z) * (0.5 / PI);
+        let mut u = fast_atan2(l.x, -l.z) * (0.5 / PI);
         if u < 0.0 {
             u += 1.0;
         }
         // theta by atan2, not acos: acos(l.y) rounds to 0 within 2.4e-4 rad of the poles.
         let sin_t = (l.x * l.x + l.z * l.z).sqrt();
-        (Vec2::new(u, sin_t.atan2(l.y) / PI), sin_t)
+        (Vec2::new(u, fast_atan2(sin_t, l.y) / PI), sin_t)
     }
 
     /// The lookup at (u, v), scaled.
