@@ -319,9 +319,24 @@ mod tests {
             }
         }
         assert!(worst < 4e-7, "worst error {worst:e}");
-        for (y, x) in [(0.0f32, 0.0f32), (-0.0, 0.0), (0.0, -0.0), (-0.0, -0.0), (1.0, 0.0), (-1.0, 0.0), (0.0, -1.0), (-0.0, -1.0), (1e-30, 1.0), (1.0, 1e-30), (3.0, -1e-38)] {
+        for (y, x) in [
+            (0.0f32, 0.0f32),
+            (-0.0, 0.0),
+            (0.0, -0.0),
+            (-0.0, -0.0),
+            (1.0, 0.0),
+            (-1.0, 0.0),
+            (0.0, -1.0),
+            (-0.0, -1.0),
+            (1e-30, 1.0),
+            (1.0, 1e-30),
+            (3.0, -1e-38),
+        ] {
             let (f, e) = (fast_atan2(y, x), y.atan2(x));
-            assert!((f - e).abs() <= 4e-7 && f.is_sign_negative() == e.is_sign_negative(), "atan2({y}, {x}): {f} against {e}");
+            assert!(
+                (f - e).abs() <= 4e-7 && f.is_sign_negative() == e.is_sign_negative(),
+                "atan2({y}, {x}): {f} against {e}"
+            );
         }
         assert!(fast_atan2(f32::NAN, 1.0).is_nan() && fast_atan2(1.0, f32::NAN).is_nan());
     }
