@@ -47,6 +47,17 @@ pub fn round_to_i128(x: f64) -> i128 {
     }) as i128
 }
 
+/// `x as f64`, natively when `x` fits an i64 (the same rounding to nearest: only the
+/// conversion of a wider integer is a library call). Developing an image and the status's
+/// error estimate spend this on every pixel.
+#[inline]
+pub fn to_f64(x: i128) -> f64 {
+    match i64::try_from(x) {
+        Ok(v) => v as f64,
+        Err(_) => x as f64,
+    }
+}
+
 /// Why a sample was left out of the image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum DropReason {
@@ -271,14 +282,14 @@ impl Accum {
             if p.count < 2 || p.weight == 0 {
                 continue;
             }
-            let w = p.weight as f64;
+            let w = to_f64(p.weight);
             let mean = luminance(Rgb::new(
-                (p.rgb[0] as f64 / w) as f32,
-                (p.rgb[1] as f64 / w) as f32,
-                (p.rgb[2] as f64 / w) as f32,
+                (to_f64(p.rgb[0]) / w) as f32,
+                (to_f64(p.rgb[1]) / w) as f32,
+                (to_f64(p.rgb[2]) / w) as f32,
             )) as f64;
             let c = p.count as f64;
-            let second = p.lum2 as f64 / (1u64 << FIXED_BITS_LUM2) as f64 / c;
+            let second = to_f64(p.lum2) / (1u64 << FIXED_BITS_LUM2) as f64 / c;
             // Bessel's correction: the mean is estimated from the same samples.
             let var = (second - mean * mean).max(0.0) * c / (c - 1.0);
             sum += var / c / (mean * mean + 1e-2);
@@ -304,11 +315,11 @@ impl Accum {
                 if p.weight == 0 {
                     return Rgb::ZERO;
                 }
-                let w = p.weight as f64;
+                let w = to_f64(p.weight);
                 Rgb::new(
-                    (p.rgb[0] as f64 / w) as f32,
-                    (p.rgb[1] as f64 / w) as f32,
-                    (p.rgb[2] as f64 / w) as f32,
+                    (to_f64(p.rgb[0]) / w) as f32,
+                    (to_f64(p.rgb[1]) / w) as f32,
+                    (to_f64(p.rgb[2]) / w) as f32,
                 )
             })
             .collect();
@@ -441,6 +452,20 @@ mod tests {
         }
         for x in vals {
             assert_eq!(round_to_i128(x), x.round() as i128, "{x:e} ({:#x})", x.to_bits());
+        }
+    }
+
+    #[test]
+    fn to_f64_is_as_f64() {
+        let mut s = 0x1234_5678_9abc_def0u64;
+        for k in 0..100_000 {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            let x = ((s as i128) << 64 | s.rotate_left(29) as i128) >> (k % 120);
+            for v in [x, -x, x >> 64, i64::MAX as i128 + (k as i128), i64::MIN as i128 - (k as i128)] {
+                assert_eq!(to_f64(v).to_bits(), (v as f64).to_bits(), "{v}");
+            }
         }
     }
 

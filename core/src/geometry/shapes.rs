@@ -4,7 +4,7 @@
 use glam::{Mat3, Mat4, Vec2, Vec3};
 
 use super::{intersect_triangle, Interaction, Mesh, Ray, RayPre};
-use crate::math::{gamma, safe_acos, Frame, PI};
+use crate::math::{fast_atan2, gamma, safe_acos, Frame, PI};
 
 /// A sphere (`center`, `radius`); `rot` maps world directions to the object frame that defines
 /// its uv parameterisation.
@@ -20,7 +20,7 @@ impl Sphere {
     #[inline]
     pub fn uv(&self, n: Vec3) -> Vec2 {
         let l = self.rot * n;
-        let mut phi = l.y.atan2(l.x);
+        let mut phi = fast_atan2(l.y, l.x);
         if phi < 0.0 {
             phi += 2.0 * PI;
         }
@@ -48,7 +48,7 @@ impl Disk {
     /// Mitsuba's disk uv: (r, phi / 2 pi) of object-space point `q`.
     #[inline]
     pub fn uv(q: Vec2) -> Vec2 {
-        let mut phi = q.y.atan2(q.x);
+        let mut phi = fast_atan2(q.y, q.x);
         if phi < 0.0 {
             phi += 2.0 * PI;
         }
