@@ -470,37 +470,25 @@ fn in_cell(c: usize, f: f64, n: usize) -> f32 {
 /// Chooses one of a 2 x 2 block by its values [(0, 0), (1, 0), (0, 1), (1, 1)]: the column by
 /// the column sums with `ux`, then the row within it with `uy`, each rescaled to be uniform
 /// again. `None` if the block is empty.
+///
+/// In the block's own units (`ux * sum` against the left column's sum), so that each choice
+/// and rescaling costs one division: the warp's levels are a serial chain of them. A side
+/// whose sum is 0 is never chosen, whatever the rounding of `ux * sum`.
 #[inline]
 fn choose(v: [f32; 4], ux: &mut f64, uy: &mut f64) -> Option<(usize, usize)> {
     let [a, b, c, d] = v.map(f64::from);
-    let left = a + c;
-    let sum = left + b + d;
-    if !(sum > 0.0) {
+    let (left, right) = (a + c, b + d);
+    let sum = left + right;
+    if !(sum > 0.0 && sum.is_finite()) {
         return None;
     }
-    let pl = left / sum;
-    if !pl.is_finite() {
-        return None;
-    }
-    let dx = if *ux < pl {
-        *ux /= pl;
-        0
-    } else {
-        *ux = (*ux - pl) / (1.0 - pl);
-        1
-    };
+    let x = *ux * sum;
+    let dx = (x >= left && right > 0.0) as usize;
     let (top, bottom) = if dx == 0 { (a, c) } else { (b, d) };
-    let pt = top / (top + bottom);
-    if !(pt >= 0.0) {
-        return None;
-    }
-    let dy = if *uy < pt {
-        *uy /= pt;
-        0
-    } else {
-        *uy = (*uy - pt) / (1.0 - pt);
-        1
-    };
+    *ux = if dx == 0 { x / left } else { (x - left) / right };
+    let y = *uy * (top + bottom);
+    let dy = (y >= top && bottom > 0.0) as usize;
+    *uy = if dy == 0 { y / top } else { (y - top) / bottom };
     *ux = ux.clamp(0.0, ONE_BELOW);
     *uy = uy.clamp(0.0, ONE_BELOW);
     Some((dx, dy))
