@@ -47,14 +47,19 @@ pub fn round_to_i128(x: f64) -> i128 {
     }) as i128
 }
 
-/// `x as f64`, natively when `x` fits an i64 (the same rounding to nearest: only the
-/// conversion of a wider integer is a library call). Developing an image and the status's
-/// error estimate spend this on every pixel.
+/// `x as f64`, bit for bit, without the library call that converting an i128 takes, below
+/// 2^85 in magnitude: x = hi 2^32 + lo with hi (below 2^53) and lo (below 2^32) exact in f64,
+/// hi 2^32 exact too, so their sum rounds once, to the nearest, as the conversion does.
+/// (Written this way because the compiler turns a plain `x as i64 as f64` under a range check
+/// back into the library call.) Developing an image and the status's error estimate spend
+/// this on every pixel.
 #[inline]
 pub fn to_f64(x: i128) -> f64 {
-    match i64::try_from(x) {
-        Ok(v) => v as f64,
-        Err(_) => x as f64,
+    let hi = x >> 32;
+    if hi.unsigned_abs() < 1 << 53 {
+        hi as i64 as f64 * 4_294_967_296.0 + (x as u32) as f64
+    } else {
+        x as f64
     }
 }
 
@@ -465,6 +470,15 @@ mod tests {
             let x = ((s as i128) << 64 | s.rotate_left(29) as i128) >> (k % 120);
             for v in [x, -x, x >> 64, i64::MAX as i128 + (k as i128), i64::MIN as i128 - (k as i128)] {
                 assert_eq!(to_f64(v).to_bits(), (v as f64).to_bits(), "{v}");
+            }
+        }
+        // Ties and near-ties of the rounding, on both sides of the fast path's 2^85 limit.
+        for e in 50..100 {
+            let ulp = 1i128 << (e - 52).max(0);
+            for off in [0, ulp / 2 - 1, ulp / 2, ulp / 2 + 1, ulp + ulp / 2, ulp - 1] {
+                for v in [(1i128 << e) + off, (3i128 << (e - 1)) + off, -((1i128 << e) + off)] {
+                    assert_eq!(to_f64(v).to_bits(), (v as f64).to_bits(), "{v}");
+                }
             }
         }
     }
