@@ -146,7 +146,7 @@ impl Bitmap {
                 .map(|p| {
                     let c = Rgb::new(p[0], p[1], p[2]);
                     if decode {
-                        Rgb::new(srgb_to_linear(c.x), srgb_to_linear(c.y), srgb_to_linear(c.z))
+                        Rgb::new(srgb_byte_or_any(c.x), srgb_byte_or_any(c.y), srgb_byte_or_any(c.z))
                     } else {
                         c
                     }
@@ -252,8 +252,43 @@ pub(crate) fn from_scene(
     Ok(super::Texture::Bitmap(Arc::new(super::BitmapTexture { bitmap, filter, wrap, to_uv, mip })))
 }
 
+/// [`srgb_to_linear`] of `v`, bit for bit, from a table when `v` is an 8-bit value `k / 255`
+/// (what an 8-bit image normalises to; `powf` for every channel of every texel was most of
+/// loading a large 8-bit texture).
+#[inline]
+fn srgb_byte_or_any(v: f32) -> f32 {
+    static TABLE: std::sync::LazyLock<[(f32, f32); 256]> = std::sync::LazyLock::new(|| {
+        std::array::from_fn(|k| {
+            let v = k as f32 / 255.0;
+            (v, srgb_to_linear(v))
+        })
+    });
+    let k = (v * 255.0).round();
+    if (0.0..=255.0).contains(&k) {
+        let (input, output) = TABLE[k as usize];
+        if input.to_bits() == v.to_bits() {
+            return output;
+        }
+    }
+    srgb_to_linear(v)
+}
+
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn srgb_table_is_the_transfer_function() {
+        use crate::math::srgb_to_linear;
+        for k in 0..=255u32 {
+            let v = k as f32 / 255.0;
+            for x in [v, f32::from_bits(v.to_bits() + 1), f32::from_bits(v.to_bits().saturating_sub(1))] {
+                assert_eq!(super::srgb_byte_or_any(x).to_bits(), srgb_to_linear(x).to_bits(), "{x}");
+            }
+        }
+        for x in [-0.0f32, -1.0, 1.5, 1e-30, f32::NAN] {
+            assert_eq!(super::srgb_byte_or_any(x).to_bits(), srgb_to_linear(x).to_bits(), "{x}");
+        }
+    }
+
     use super::*;
 
     #[test]
