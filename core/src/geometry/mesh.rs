@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use glam::{Mat4, Vec2, Vec3};
+use glam::{Mat4, Vec2, Vec3, Vec3A};
 
 use crate::math::gamma;
 
@@ -43,8 +43,14 @@ impl Mesh {
     /// (b1, b2) of triangle `i`. Without texture coordinates uv = (b1, b2), as in Mitsuba.
     #[inline]
     pub fn surface(&self, i: usize, b1: f32, b2: f32) -> (Vec3, Vec3, Vec3, Vec3, Vec2, Vec3, Vec3) {
+        // In Vec3A (SIMD lanes): lane for lane the same operations as Vec3's, so the same bits,
+        // in about half the instructions of Vec3's shuffling.
         let [ia, ib, ic] = self.tris[i].map(|k| k as usize);
-        let (p0, p1, p2) = (self.positions[ia], self.positions[ib], self.positions[ic]);
+        let (p0, p1, p2) = (
+            Vec3A::from(self.positions[ia]),
+            Vec3A::from(self.positions[ib]),
+            Vec3A::from(self.positions[ic]),
+        );
         let b0 = 1.0 - b1 - b2;
         let p = p0 * b0 + p1 * b1 + p2 * b2;
         let p_err = ((p0 * b0).abs() + (p1 * b1).abs() + (p2 * b2).abs()) * gamma(7);
@@ -67,9 +73,11 @@ impl Mesh {
         let ns = if self.normals.is_empty() {
             ng
         } else {
-            let n =
-                (self.normals[ia] * b0 + self.normals[ib] * b1 + self.normals[ic] * b2).normalize_or_zero();
-            if n == Vec3::ZERO {
+            let n = (Vec3A::from(self.normals[ia]) * b0
+                + Vec3A::from(self.normals[ib]) * b1
+                + Vec3A::from(self.normals[ic]) * b2)
+                .normalize_or_zero();
+            if n == Vec3A::ZERO {
                 ng
             } else {
                 // The geometric normal lies on the side of the shading normal.
@@ -79,7 +87,7 @@ impl Mesh {
                 n
             }
         };
-        (p, p_err, ng, ns, uv, dpdu, dpdv)
+        (p.into(), p_err.into(), ng.into(), ns.into(), uv, dpdu.into(), dpdv.into())
     }
 
     /// Applies `to_world` to positions and (by the inverse transpose) to normals.
