@@ -282,8 +282,10 @@ mod x86 {
     }
 
     /// [`super::test_scalar`] on all eight lanes at once (AVX2 widens the bytes). A plane is
-    /// decoded by one fused multiply-add: `origin + q * scale` is exact in f32 (`Node`), so the
-    /// fused and the separate operations give the same bits.
+    /// decoded by one fused multiply-add: the product `q * scale` (an integer below 256 times a
+    /// power of two) is exact, so the fused and the separate operations round the same sum once
+    /// and give the same bits (short of `q * scale` overflowing, which takes a node spanning
+    /// about 1e38).
     #[inline(always)]
     pub unsafe fn test_avx2(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         let mut near = _mm256_set1_ps(tmin);
