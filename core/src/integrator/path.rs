@@ -33,8 +33,9 @@ pub fn li(
     }
     let n_lights = scene.lights.len();
     let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
-    // Whether light sampling uses its choice number: to pick a light, or a light's primitive.
-    let chooses_light = n_lights > 1 || scene.lights.first().is_some_and(|l| l.chooses_primitive());
+    // Whether light sampling uses its choice number, to pick a light (a light's primitive is
+    // picked by reusing the light sample's first number: `Light::sample`).
+    let chooses_light = n_lights > 1;
 
     let mut l = Rgb::ZERO;
     let mut beta = Rgb::ONE;
@@ -109,18 +110,16 @@ pub fn li(
             _ => it.uv.into(),
         };
         let [lu, lv, bu, bv] = s.next_4d();
-        // Light and primitive choice, lobe choice and roulette: computed only if used here.
+        // Light choice, lobe choice and roulette: computed only if used here.
         let mut choices = s.defer_4d();
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
         if plan.light_sampling && bsdf.is_smooth() {
             let lsel = if chooses_light { choices.get(s)[0] } else { 0.0 };
-            let x = lsel * n_lights as f32;
-            let k = (x as usize).min(n_lights - 1);
-            let u_prim = (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON);
+            let k = ((lsel * n_lights as f32) as usize).min(n_lights - 1);
             let light = &scene.lights[k];
             st.light_samples[light.kind() as usize] += 1;
-            if let Some(ls) = light.sample(&scene.shapes, &it, u_prim, Vec2::new(lu, lv)) {
+            if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv)) {
                 if ls.pdf > 0.0 && ls.li != Rgb::ZERO {
                     let wi = it.frame.to_local(ls.wi);
                     let (f, bsdf_pdf) = bsdf.eval_and_pdf(tc, wo, wi);

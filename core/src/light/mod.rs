@@ -129,13 +129,8 @@ impl Light {
         matches!(self, Light::Constant { .. } | Light::Envmap(_))
     }
 
-    /// Whether `sample` uses its `u_prim`: an area light of more than one primitive.
-    pub fn chooses_primitive(&self) -> bool {
-        matches!(self, Light::Area { cdf, .. } if cdf.len() > 2)
-    }
-
-    /// Samples the light from `it` with `u_prim` (choosing a primitive) and `u`.
-    pub fn sample(&self, shapes: &[Shape], it: &Interaction, u_prim: f32, u: Vec2) -> Option<LightSample> {
+    /// Samples the light from `it` with `u` (its first number also chooses the primitive).
+    pub fn sample(&self, shapes: &[Shape], it: &Interaction, u: Vec2) -> Option<LightSample> {
         match self {
             Light::Area { shape, radiance, cdf, area } => {
                 let sh = &shapes[*shape as usize];
@@ -146,8 +141,8 @@ impl Light {
                         }
                     }
                 }
-                let prim = pick(cdf, u_prim);
-                let sp = sh.sample_prim(prim, u);
+                let (prim, ux) = pick_reuse(cdf, u.x);
+                let sp = sh.sample_prim(prim, Vec2::new(ux, u.y));
                 let v = sp.p - it.p;
                 let dist2 = v.length_squared();
                 if dist2 == 0.0 {
@@ -289,6 +284,18 @@ fn pick(cdf: &[f64], u: f32) -> usize {
     cdf.partition_point(|&c| c <= u).saturating_sub(1).min(n - 1)
 }
 
+/// [`pick`], and `u` rescaled to [0, 1) within the chosen interval, to be used again (as
+/// Mitsuba does for a mesh emitter's triangle): a primitive and the point on it then come from
+/// one stratified 2-D sample, so the points stratify over the whole light rather than over
+/// each primitive alone, and no other sample dimension is spent on the choice. A single
+/// primitive (cdf [0, 1]) leaves `u` exactly as it was.
+fn pick_reuse(cdf: &[f64], u: f32) -> (usize, f32) {
+    let i = pick(cdf, u);
+    let (lo, hi) = (cdf[i], cdf[i + 1]);
+    let v = if hi > lo { ((u as f64 - lo) / (hi - lo)) as f32 } else { u };
+    (i, v.clamp(0.0, 1.0 - f32::EPSILON / 2.0))
+}
+
 /// 1 - cos(theta_max) of the cone a sphere subtends from `p`, or `None` when `p` is inside it.
 /// Computed as sin^2 / (1 + cos) to stay accurate for tiny, distant spheres.
 fn cone_extent(center: Vec3, radius: f32, p: Vec3) -> Option<f32> {
@@ -405,6 +412,23 @@ pub(crate) fn area_radiance_from(b: &mut Builder, i: usize) -> R<Texture> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The reused number covers [0, 1) again within each primitive, in order, and a single
+    /// primitive's is the number itself.
+    #[test]
+    fn pick_reuse_rescales_within_the_choice() {
+        let cdf = [0.0, 0.25, 0.25, 1.0];
+        assert_eq!(pick_reuse(&cdf, 0.0), (0, 0.0));
+        assert_eq!(pick_reuse(&cdf, 0.125), (0, 0.5));
+        assert_eq!(pick_reuse(&cdf, 0.25), (2, 0.0));
+        assert_eq!(pick_reuse(&cdf, 0.625), (2, 0.5));
+        let (k, v) = pick_reuse(&cdf, 1.0 - f32::EPSILON / 2.0);
+        assert!(k == 2 && v < 1.0);
+        for i in 0..1000 {
+            let u = i as f32 / 1000.0;
+            assert_eq!(pick_reuse(&[0.0, 1.0], u), (0, u));
+        }
+    }
 
     #[test]
     fn pick_follows_the_cdf() {
