@@ -33,8 +33,10 @@ pub fn li(
     }
     let n_lights = scene.lights.len();
     let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
-    // Whether light sampling uses its choice number, to pick a light (a light's primitive is
-    // picked by reusing the light sample's first number: `Light::sample`).
+    // Whether light sampling picks a light. The light, and an area light's primitive, are
+    // picked by reusing the light sample's first number, rescaled within each choice (as
+    // Mitsuba does): the choices and the point on the light then come from one stratified
+    // 2-D sample.
     let chooses_light = n_lights > 1;
 
     let mut l = Rgb::ZERO;
@@ -110,13 +112,18 @@ pub fn li(
             _ => it.uv.into(),
         };
         let [lu, lv, bu, bv] = s.next_4d();
-        // Light choice, lobe choice and roulette: computed only if used here.
+        // Lobe choice and roulette (its first number is unused): computed only if used here.
         let mut choices = s.defer_4d();
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
         if plan.light_sampling && bsdf.is_smooth() {
-            let lsel = if chooses_light { choices.get(s)[0] } else { 0.0 };
-            let k = ((lsel * n_lights as f32) as usize).min(n_lights - 1);
+            let (k, lu) = if chooses_light {
+                let x = lu * n_lights as f32;
+                let k = (x as usize).min(n_lights - 1);
+                (k, (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON / 2.0))
+            } else {
+                (0, lu)
+            };
             let light = &scene.lights[k];
             st.light_samples[light.kind() as usize] += 1;
             if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv)) {
