@@ -13,6 +13,10 @@ use crate::math::{mis_power, Rgb};
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
 
+/// Lights among which next-event estimation picks by reusing the light sample's first
+/// number (4 of its 23 bits at most).
+const REUSE_LIGHTS: usize = 16;
+
 /// Hidden emitters a camera ray passes through at most (stacked coplanar lights would
 /// otherwise keep it in place).
 const MAX_PASSES: u32 = 64;
@@ -33,11 +37,13 @@ pub fn li(
     }
     let n_lights = scene.lights.len();
     let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
-    // Whether light sampling picks a light. The light, and an area light's primitive, are
-    // picked by reusing the light sample's first number, rescaled within each choice (as
-    // Mitsuba does): the choices and the point on the light then come from one stratified
-    // 2-D sample.
+    // Whether light sampling picks a light. The light (of at most REUSE_LIGHTS), and an area
+    // light's primitive (`Light::sample`), are picked by reusing the light sample's first
+    // number, rescaled within each choice (as Mitsuba does): the choices and the point on the
+    // light then come from one stratified 2-D sample. Each reuse spends log2(choices) of the
+    // number's 23 bits; more lights are picked with a number of their own.
     let chooses_light = n_lights > 1;
+    let reuses_for_light = n_lights <= REUSE_LIGHTS;
 
     let mut l = Rgb::ZERO;
     let mut beta = Rgb::ONE;
@@ -112,21 +118,25 @@ pub fn li(
             _ => it.uv.into(),
         };
         let [lu, lv, bu, bv] = s.next_4d();
-        // Lobe choice and roulette (its first number is unused): computed only if used here.
+        // The light's choice past REUSE_LIGHTS lights, lobe choice, roulette, and a spare
+        // number for a light's primitive: computed only if used here.
         let mut choices = s.defer_4d();
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
         if plan.light_sampling && bsdf.is_smooth() {
-            let (k, lu) = if chooses_light {
+            let (k, lu) = if !chooses_light {
+                (0, lu)
+            } else if reuses_for_light {
                 let x = lu * n_lights as f32;
                 let k = (x as usize).min(n_lights - 1);
                 (k, (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON / 2.0))
             } else {
-                (0, lu)
+                (((choices.get(s)[0] * n_lights as f32) as usize).min(n_lights - 1), lu)
             };
             let light = &scene.lights[k];
             st.light_samples[light.kind() as usize] += 1;
-            if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv)) {
+            let spare = || choices.get(s)[3];
+            if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare) {
                 if ls.pdf > 0.0 && ls.li != Rgb::ZERO {
                     let wi = it.frame.to_local(ls.wi);
                     let (f, bsdf_pdf) = bsdf.eval_and_pdf(tc, wo, wi);

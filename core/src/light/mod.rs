@@ -129,8 +129,16 @@ impl Light {
         matches!(self, Light::Constant { .. } | Light::Envmap(_))
     }
 
-    /// Samples the light from `it` with `u` (its first number also chooses the primitive).
-    pub fn sample(&self, shapes: &[Shape], it: &Interaction, u: Vec2) -> Option<LightSample> {
+    /// Samples the light from `it` with `u`. Its first number also chooses an area light's
+    /// primitive ([`pick_reuse`]); `spare` is a further uniform number, asked for only when the
+    /// chosen primitive's share is too small for that.
+    pub fn sample(
+        &self,
+        shapes: &[Shape],
+        it: &Interaction,
+        u: Vec2,
+        spare: impl FnOnce() -> f32,
+    ) -> Option<LightSample> {
         match self {
             Light::Area { shape, radiance, cdf, area } => {
                 let sh = &shapes[*shape as usize];
@@ -141,7 +149,7 @@ impl Light {
                         }
                     }
                 }
-                let (prim, ux) = pick_reuse(cdf, u.x);
+                let (prim, ux) = pick_reuse(cdf, u.x, spare);
                 let sp = sh.sample_prim(prim, Vec2::new(ux, u.y));
                 let v = sp.p - it.p;
                 let dist2 = v.length_squared();
@@ -284,15 +292,20 @@ fn pick(cdf: &[f64], u: f32) -> usize {
     cdf.partition_point(|&c| c <= u).saturating_sub(1).min(n - 1)
 }
 
-/// [`pick`], and `u` rescaled to [0, 1) within the chosen interval, to be used again (as
-/// Mitsuba does for a mesh emitter's triangle): a primitive and the point on it then come from
-/// one stratified 2-D sample, so the points stratify over the whole light rather than over
-/// each primitive alone, and no other sample dimension is spent on the choice. A single
-/// primitive (cdf [0, 1]) leaves `u` exactly as it was.
-fn pick_reuse(cdf: &[f64], u: f32) -> (usize, f32) {
+/// A choice's share of [0, 1) below which [`pick_reuse`] does not reuse the number: rescaling
+/// by a share p leaves log2(1 / p) fewer of its 23 bits, and a mesh emitter of a million
+/// triangles would otherwise put every sample on a few lines across each triangle.
+pub const REUSE_MIN_SHARE: f64 = 1.0 / 64.0;
+
+/// [`pick`], and a uniform number for the chosen primitive: `u` rescaled to [0, 1) within the
+/// chosen interval, to be used again (as Mitsuba does for a mesh emitter's triangle), so that
+/// a primitive and the point on it come from one stratified 2-D sample and the points
+/// stratify over the whole light; or, where the interval is narrower than
+/// [`REUSE_MIN_SHARE`], `spare()`. A single primitive (cdf [0, 1]) leaves `u` exactly as it was.
+fn pick_reuse(cdf: &[f64], u: f32, spare: impl FnOnce() -> f32) -> (usize, f32) {
     let i = pick(cdf, u);
     let (lo, hi) = (cdf[i], cdf[i + 1]);
-    let v = if hi > lo { ((u as f64 - lo) / (hi - lo)) as f32 } else { u };
+    let v = if hi - lo >= REUSE_MIN_SHARE { ((u as f64 - lo) / (hi - lo)) as f32 } else { spare() };
     (i, v.clamp(0.0, 1.0 - f32::EPSILON / 2.0))
 }
 
@@ -417,17 +430,22 @@ mod tests {
     /// primitive's is the number itself.
     #[test]
     fn pick_reuse_rescales_within_the_choice() {
+        let none = || -> f32 { panic!("the spare number was asked for") };
         let cdf = [0.0, 0.25, 0.25, 1.0];
-        assert_eq!(pick_reuse(&cdf, 0.0), (0, 0.0));
-        assert_eq!(pick_reuse(&cdf, 0.125), (0, 0.5));
-        assert_eq!(pick_reuse(&cdf, 0.25), (2, 0.0));
-        assert_eq!(pick_reuse(&cdf, 0.625), (2, 0.5));
-        let (k, v) = pick_reuse(&cdf, 1.0 - f32::EPSILON / 2.0);
+        assert_eq!(pick_reuse(&cdf, 0.0, none), (0, 0.0));
+        assert_eq!(pick_reuse(&cdf, 0.125, none), (0, 0.5));
+        assert_eq!(pick_reuse(&cdf, 0.25, none), (2, 0.0));
+        assert_eq!(pick_reuse(&cdf, 0.625, none), (2, 0.5));
+        let (k, v) = pick_reuse(&cdf, 1.0 - f32::EPSILON / 2.0, none);
         assert!(k == 2 && v < 1.0);
         for i in 0..1000 {
             let u = i as f32 / 1000.0;
-            assert_eq!(pick_reuse(&[0.0, 1.0], u), (0, u));
+            assert_eq!(pick_reuse(&[0.0, 1.0], u, none), (0, u));
         }
+        // A narrow share takes the spare number instead of a few bits of `u`.
+        let narrow = [0.0, 0.001, 1.0];
+        assert_eq!(pick_reuse(&narrow, 0.0005, || 0.75), (0, 0.75));
+        assert_eq!(pick_reuse(&narrow, 0.5, || 0.75).0, 1);
     }
 
     #[test]
