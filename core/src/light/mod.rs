@@ -295,7 +295,7 @@ fn pick(cdf: &[f64], u: f32) -> usize {
 /// A choice's share of [0, 1) below which [`pick_reuse`] does not reuse the number: rescaling
 /// by a share p leaves log2(1 / p) fewer of its 23 bits, and a mesh emitter of a million
 /// triangles would otherwise put every sample on a few lines across each triangle.
-pub const REUSE_MIN_SHARE: f64 = 1.0 / 64.0;
+const REUSE_MIN_SHARE: f64 = 1.0 / 64.0;
 
 /// [`pick`], and a uniform number for the chosen primitive: `u` rescaled to [0, 1) within the
 /// chosen interval, to be used again (as Mitsuba does for a mesh emitter's triangle), so that

@@ -257,35 +257,30 @@ pub(crate) fn from_scene(
 /// loading a large 8-bit texture).
 #[inline]
 fn srgb_byte_or_any(v: f32) -> f32 {
-    static TABLE: std::sync::LazyLock<[(f32, f32); 256]> = std::sync::LazyLock::new(|| {
-        std::array::from_fn(|k| {
-            let v = k as f32 / 255.0;
-            (v, srgb_to_linear(v))
-        })
-    });
+    static TABLE: std::sync::LazyLock<[f32; 256]> =
+        std::sync::LazyLock::new(|| std::array::from_fn(|k| srgb_to_linear(k as f32 / 255.0)));
     let k = (v * 255.0).round();
-    if (0.0..=255.0).contains(&k) {
-        let (input, output) = TABLE[k as usize];
-        if input.to_bits() == v.to_bits() {
-            return output;
-        }
+    // (`k as usize` first: -0.0 is not the table's +0.)
+    if (0.0..=255.0).contains(&k) && ((k as usize) as f32 / 255.0).to_bits() == v.to_bits() {
+        return TABLE[k as usize];
     }
     srgb_to_linear(v)
 }
 
 #[cfg(test)]
-mod tests {
+mod load_tests {
+    use super::*;
+
     #[test]
     fn srgb_table_is_the_transfer_function() {
-        use crate::math::srgb_to_linear;
         for k in 0..=255u32 {
             let v = k as f32 / 255.0;
             for x in [v, f32::from_bits(v.to_bits() + 1), f32::from_bits(v.to_bits().saturating_sub(1))] {
-                assert_eq!(super::srgb_byte_or_any(x).to_bits(), srgb_to_linear(x).to_bits(), "{x}");
+                assert_eq!(srgb_byte_or_any(x).to_bits(), srgb_to_linear(x).to_bits(), "{x}");
             }
         }
         for x in [-0.0f32, -1.0, 1.5, 1e-30, f32::NAN] {
-            assert_eq!(super::srgb_byte_or_any(x).to_bits(), srgb_to_linear(x).to_bits(), "{x}");
+            assert_eq!(srgb_byte_or_any(x).to_bits(), srgb_to_linear(x).to_bits(), "{x}");
         }
     }
 
@@ -307,11 +302,6 @@ mod tests {
         assert_eq!(b.bilinear(Vec2::new(0.75, 0.5), WrapMode::Clamp), Rgb::splat(1.0));
         assert!((b.bilinear(Vec2::new(0.5, 0.5), WrapMode::Clamp).x - 0.5).abs() < 1e-6);
     }
-}
-
-#[cfg(test)]
-mod load_tests {
-    use super::*;
 
     #[test]
     fn loads_hdr_linear_and_png_srgb() {
