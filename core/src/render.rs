@@ -116,10 +116,10 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                 }
                 // Splat to every pixel whose centre lies within the filter radius.
                 let (px, py) = (x as f32 + fx, y as f32 + fy);
-                let jx0 = ((px - radius - 0.5).ceil() as i64).max(0);
-                let jx1 = ((px + radius - 0.5).floor() as i64).min(w - 1);
-                let jy0 = ((py - radius - 0.5).ceil() as i64).max(0);
-                let jy1 = ((py + radius - 0.5).floor() as i64).min(h - 1);
+                let jx0 = (crate::math::ceil(px - radius - 0.5) as i64).max(0);
+                let jx1 = (crate::math::floor(px + radius - 0.5) as i64).min(w - 1);
+                let jy0 = (crate::math::ceil(py - radius - 0.5) as i64).max(0);
+                let jy1 = (crate::math::floor(py + radius - 0.5) as i64).min(h - 1);
                 for jy in jy0..=jy1 {
                     let wy = filter.eval(py - (jy as f32 + 0.5));
                     if wy == 0.0 {

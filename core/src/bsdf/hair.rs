@@ -240,7 +240,7 @@ impl Hair {
         let u0 = u2.x.max(1e-5);
         let cos_t = 1.0 + v * (u0 + (1.0 - u0) * (-2.0 / v).exp()).ln();
         let sin_t = safe_sqrt(1.0 - cos_t * cos_t);
-        let cos_phi = (2.0 * PI * u2.y).cos();
+        let cos_phi = crate::math::sin_cos_2pi(u2.y).1;
         let sin_i = (-cos_t * so + sin_t * cos_phi * co).clamp(-1.0, 1.0);
         let cos_i = safe_sqrt(1.0 - sin_i * sin_i);
         let dphi = if p < P_MAX {

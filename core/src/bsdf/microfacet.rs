@@ -113,7 +113,7 @@ impl Microfacet {
         let t1 = if len2 > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / len2.sqrt() } else { Vec3::X };
         let t2 = vh.cross(t1);
         let r = u.x.sqrt();
-        let (s, c) = (2.0 * PI * u.y).sin_cos();
+        let (s, c) = crate::math::sin_cos_2pi(u.y);
         let p1 = r * c;
         let mut p2 = r * s;
         let h = 0.5 * (1.0 + vh.z);

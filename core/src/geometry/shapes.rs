@@ -309,7 +309,7 @@ impl Shape {
             Geometry::Disk(d) => {
                 let (p, p_err) = d.point(aux.x, aux.y);
                 let uv = Disk::uv(aux);
-                let (s, c) = (uv.y * 2.0 * PI).sin_cos();
+                let (s, c) = crate::math::sin_cos_2pi(uv.y);
                 let dpdu = d.to_world.transform_vector3(Vec3::new(c, s, 0.0));
                 let dpdv = d.to_world.transform_vector3(Vec3::new(-aux.y, aux.x, 0.0) * (2.0 * PI));
                 (p, p_err, d.normal, d.normal, uv, dpdu, dpdv)

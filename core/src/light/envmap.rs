@@ -36,8 +36,8 @@ use std::sync::Arc;
 
 use glam::{Mat3, Vec2, Vec3};
 
-use crate::math::{fast_atan2, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
-use crate::texture::{Bitmap, FilterType};
+use crate::math::{fast_atan2, sin_cos_2pi, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
+use crate::texture::{Bitmap, FilterType, WrapMode};
 
 /// The largest f64 below 1: where a rescaled sample number must stay.
 const ONE_BELOW: f64 = 1.0 - f64::EPSILON / 2.0;
@@ -222,12 +222,10 @@ impl EnvMap {
             _ => {
                 let px = uv.x * w as f32 - 0.5;
                 let py = uv.y * h as f32 - 0.5;
-                let (fx, fy) = (px.floor(), py.floor());
+                let (fx, fy) = (crate::math::floor(px), crate::math::floor(py));
                 let (tx, ty) = (px - fx, py - fy);
-                let x0 = (fx as i64).rem_euclid(w as i64) as usize;
-                let x1 = (x0 + 1) % w;
-                let y0 = (fy as i64).clamp(0, h as i64 - 1) as usize;
-                let y1 = (fy as i64 + 1).clamp(0, h as i64 - 1) as usize;
+                let [x0, x1] = WrapMode::Repeat.apply_pair(fx as i64, w as i64);
+                let [y0, y1] = WrapMode::Clamp.apply_pair(fy as i64, h as i64);
                 (b.texel(x0, y0) * (1.0 - tx) + b.texel(x1, y0) * tx) * (1.0 - ty)
                     + (b.texel(x0, y1) * (1.0 - tx) + b.texel(x1, y1) * tx) * ty
             }
@@ -287,13 +285,13 @@ impl EnvMap {
         if uu >= 1.0 {
             uu -= 1.0;
         }
-        let (sin_p, cos_p) = (2.0 * PI64 * uu as f64).sin_cos();
-        let (sin_t, cos_t) = (PI64 * v as f64).sin_cos();
-        let l = Vec3::new((sin_t * sin_p) as f32, cos_t as f32, (-sin_t * cos_p) as f32);
+        let (sin_p, cos_p) = sin_cos_2pi(uu);
+        let (sin_t, cos_t) = sin_cos_2pi(0.5 * v);
+        let l = Vec3::new(sin_t * sin_p, cos_t, -sin_t * cos_p);
         let d = (self.to_world * l).normalize();
         // Radiance and pdf at the same (f32) point, so that they agree on the texel.
         let uv = Vec2::new(uu, v);
-        let pdf = self.pdf_at(uv, sin_t);
+        let pdf = self.pdf_at(uv, sin_t as f64);
         (pdf > 0.0).then(|| (d, self.lookup(uv), pdf))
     }
 }

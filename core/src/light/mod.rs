@@ -334,7 +334,7 @@ fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Optio
     let cos_t = 1.0 - one_minus_cos;
     let sin2_t = (one_minus_cos * (2.0 - one_minus_cos)).max(0.0);
     let sin_t = sin2_t.sqrt();
-    let (sp, cp) = (2.0 * PI * u.x).sin_cos();
+    let (sp, cp) = crate::math::sin_cos_2pi(u.x);
     let frame = Frame::from_normal(axis);
     let wi = frame.to_world(Vec3::new(sin_t * cp, sin_t * sp, cos_t)).normalize();
     // Distance to the near intersection with the sphere along wi.

@@ -43,6 +43,7 @@ impl WrapMode {
     #[inline]
     pub fn apply(self, i: i64, n: i64) -> usize {
         (match self {
+            WrapMode::Repeat if n & (n - 1) == 0 => i & (n - 1),
             WrapMode::Repeat => i.rem_euclid(n),
             WrapMode::Clamp => i.clamp(0, n - 1),
             WrapMode::Mirror => {
@@ -54,6 +55,26 @@ impl WrapMode {
                 }
             }
         }) as usize
+    }
+
+    /// `[self.apply(i, n), self.apply(i + 1, n)]` with at most one division, and none where
+    /// `n` is a power of two (the remainder is then a mask, for negative `i` too).
+    #[inline]
+    pub fn apply_pair(self, i: i64, n: i64) -> [usize; 2] {
+        match self {
+            WrapMode::Clamp => [i.clamp(0, n - 1) as usize, (i + 1).clamp(0, n - 1) as usize],
+            WrapMode::Repeat => {
+                let k = if n & (n - 1) == 0 { i & (n - 1) } else { i.rem_euclid(n) };
+                [k as usize, if k + 1 == n { 0 } else { k as usize + 1 }]
+            }
+            WrapMode::Mirror => {
+                let m = 2 * n;
+                let k = if m & (m - 1) == 0 { i & (m - 1) } else { i.rem_euclid(m) };
+                let k1 = if k + 1 == m { 0 } else { k + 1 };
+                let fold = |k: i64| (if k >= n { m - 1 - k } else { k }) as usize;
+                [fold(k), fold(k1)]
+            }
+        }
     }
 }
 
@@ -193,8 +214,8 @@ impl Bitmap {
 
     #[inline]
     pub fn nearest(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
-        let x = wrap.apply((uv.x * self.width as f32).floor() as i64, self.width as i64);
-        let y = wrap.apply((uv.y * self.height as f32).floor() as i64, self.height as i64);
+        let x = wrap.apply(crate::math::floor(uv.x * self.width as f32) as i64, self.width as i64);
+        let y = wrap.apply(crate::math::floor(uv.y * self.height as f32) as i64, self.height as i64);
         self.texel(x, y)
     }
 
@@ -202,12 +223,12 @@ impl Bitmap {
     pub fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
         let px = uv.x * self.width as f32 - 0.5;
         let py = uv.y * self.height as f32 - 0.5;
-        let (fx0, fy0) = (px.floor(), py.floor());
+        let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
         let (tx, ty) = (px - fx0, py - fy0);
         let (w, h) = (self.width as i64, self.height as i64);
         let (x0, y0) = (fx0 as i64, fy0 as i64);
-        let x = [wrap.apply(x0, w), wrap.apply(x0 + 1, w)];
-        let y = [wrap.apply(y0, h), wrap.apply(y0 + 1, h)];
+        let x = wrap.apply_pair(x0, w);
+        let y = wrap.apply_pair(y0, h);
         let top = self.texel(x[0], y[0]) * (1.0 - tx) + self.texel(x[1], y[0]) * tx;
         let bottom = self.texel(x[0], y[1]) * (1.0 - tx) + self.texel(x[1], y[1]) * tx;
         top * (1.0 - ty) + bottom * ty
@@ -284,8 +305,6 @@ mod load_tests {
         }
     }
 
-    use super::*;
-
     #[test]
     fn wrap_modes() {
         assert_eq!(WrapMode::Repeat.apply(-1, 4), 3);
@@ -293,6 +312,20 @@ mod load_tests {
         assert_eq!(WrapMode::Mirror.apply(-1, 4), 0);
         assert_eq!(WrapMode::Mirror.apply(4, 4), 3);
         assert_eq!(WrapMode::Mirror.apply(9, 4), 1);
+    }
+
+    /// The pair is `apply` at i and i + 1, for every mode, sizes that are and are not powers
+    /// of two, and indices far out on both sides (as `to_uv` scales put them).
+    #[test]
+    fn wrap_pairs_are_two_applies() {
+        for mode in [WrapMode::Repeat, WrapMode::Mirror, WrapMode::Clamp] {
+            for n in [1i64, 2, 3, 4, 5, 7, 8, 512, 600, 1 << 20] {
+                let far = [i64::MIN / 4, -(1 << 40) - 3, 1 << 40, i64::MAX / 4];
+                for i in (-3 * n - 2..=3 * n + 2).chain(far) {
+                    assert_eq!(mode.apply_pair(i, n), [mode.apply(i, n), mode.apply(i + 1, n)], "{mode:?} {i} {n}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -67,7 +67,7 @@ impl MipMap {
     pub fn trilinear(&self, uv: Vec2, dx: Vec2, dy: Vec2, wrap: WrapMode) -> Rgb {
         let width = dx.abs().max(dy.abs()).max_element();
         let l = self.level_for(width);
-        let l0 = l.floor() as usize;
+        let l0 = crate::math::floor(l) as usize;
         let t = l - l0 as f32;
         let a = self.levels[l0].bilinear(uv, wrap);
         if t == 0.0 || l0 + 1 >= self.levels.len() {
@@ -90,7 +90,7 @@ impl MipMap {
             minor = major / MAX_ANISOTROPY;
         }
         let l = self.level_for(minor);
-        let l0 = l.floor() as usize;
+        let l0 = crate::math::floor(l) as usize;
         let t = l - l0 as f32;
         let a = self.ewa_level(l0, uv, dx, dy, wrap);
         if t == 0.0 || l0 + 1 >= self.levels.len() {
@@ -119,8 +119,8 @@ impl MipMap {
         let det = -bb * bb + 4.0 * a * c;
         let u_ext = 2.0 * (c / det).sqrt();
         let v_ext = 2.0 * (a / det).sqrt();
-        let (x0, x1) = ((s - u_ext).ceil() as i64, (s + u_ext).floor() as i64);
-        let (y0, y1) = ((t - v_ext).ceil() as i64, (t + v_ext).floor() as i64);
+        let (x0, x1) = (crate::math::ceil(s - u_ext) as i64, crate::math::floor(s + u_ext) as i64);
+        let (y0, y1) = (crate::math::ceil(t - v_ext) as i64, crate::math::floor(t + v_ext) as i64);
         let mut sum = Rgb::ZERO;
         let mut wsum = 0.0f32;
         let falloff = (-2.0f32).exp();

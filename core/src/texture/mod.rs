@@ -66,7 +66,7 @@ impl Texture {
             Texture::Const(c) => *c,
             Texture::Checkerboard(c) => {
                 let uv = apply(&c.to_uv, tc.uv);
-                if (uv.x - uv.x.floor() > 0.5) == (uv.y - uv.y.floor() > 0.5) {
+                if (uv.x - crate::math::floor(uv.x) > 0.5) == (uv.y - crate::math::floor(uv.y) > 0.5) {
                     c.color0
                 } else {
                     c.color1
