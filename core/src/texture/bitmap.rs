@@ -322,7 +322,15 @@ mod load_tests {
             for n in [1i64, 2, 3, 4, 5, 7, 8, 512, 600, 1 << 20] {
                 let far = [i64::MIN / 4, -(1 << 40) - 3, 1 << 40, i64::MAX / 4];
                 for i in (-3 * n - 2..=3 * n + 2).chain(far) {
-                    assert_eq!(mode.apply_pair(i, n), [mode.apply(i, n), mode.apply(i + 1, n)], "{mode:?} {i} {n}");
+                    assert_eq!(
+                        mode.apply_pair(i, n),
+                        [mode.apply(i, n), mode.apply(i + 1, n)],
+                        "{mode:?} {i} {n}"
+                    );
+                    if mode == WrapMode::Repeat {
+                        // apply's own mask for powers of two, against the remainder.
+                        assert_eq!(mode.apply(i, n), i.rem_euclid(n) as usize, "{i} {n}");
+                    }
                 }
             }
         }
