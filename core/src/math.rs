@@ -69,14 +69,14 @@ pub fn fast_atan2(y: f32, x: f32) -> f32 {
 /// `if c { a } else { b }` by masks: the hot warps choose on the sample's own bits, which a
 /// branch would mispredict half the time.
 #[inline]
-pub fn pick(c: bool, a: f32, b: f32) -> f32 {
+fn select(c: bool, a: f32, b: f32) -> f32 {
     let m = (c as u32).wrapping_neg();
     f32::from_bits((a.to_bits() & m) | (b.to_bits() & !m))
 }
 
-/// `(b, a)` if `c`, else `(a, b)`, by masks (see [`pick`]).
+/// `(b, a)` if `c`, else `(a, b)`, by masks (see [`select`]).
 #[inline]
-pub fn swap_if(c: bool, a: f32, b: f32) -> (f32, f32) {
+fn swap_if(c: bool, a: f32, b: f32) -> (f32, f32) {
     let x = (a.to_bits() ^ b.to_bits()) & (c as u32).wrapping_neg();
     (f32::from_bits(a.to_bits() ^ x), f32::from_bits(b.to_bits() ^ x))
 }
@@ -89,7 +89,7 @@ pub fn swap_if(c: bool, a: f32, b: f32) -> (f32, f32) {
 pub fn floor(x: f32) -> f32 {
     if x.abs() < 8_388_608.0 {
         let t = x as i32 as f32;
-        (t - pick(t > x, 1.0, 0.0)).copysign(x)
+        (t - select(t > x, 1.0, 0.0)).copysign(x)
     } else {
         x
     }

@@ -219,16 +219,7 @@ impl EnvMap {
             FilterType::Nearest => {
                 b.texel(((uv.x * w as f32) as usize).min(w - 1), ((uv.y * h as f32) as usize).min(h - 1))
             }
-            _ => {
-                let px = uv.x * w as f32 - 0.5;
-                let py = uv.y * h as f32 - 0.5;
-                let (fx, fy) = (crate::math::floor(px), crate::math::floor(py));
-                let (tx, ty) = (px - fx, py - fy);
-                let [x0, x1] = WrapMode::Repeat.apply_pair(fx as i64, w as i64);
-                let [y0, y1] = WrapMode::Clamp.apply_pair(fy as i64, h as i64);
-                (b.texel(x0, y0) * (1.0 - tx) + b.texel(x1, y0) * tx) * (1.0 - ty)
-                    + (b.texel(x0, y1) * (1.0 - tx) + b.texel(x1, y1) * tx) * ty
-            }
+            _ => b.bilinear_wrapped(uv, WrapMode::Repeat, WrapMode::Clamp),
         };
         c * self.scale
     }

@@ -42,40 +42,47 @@ impl WrapMode {
     /// Index `i` of a row or column of `n` texels, wrapped.
     #[inline]
     pub fn apply(self, i: i64, n: i64) -> usize {
-        (match self {
-            WrapMode::Repeat if n & (n - 1) == 0 => i & (n - 1),
-            WrapMode::Repeat => i.rem_euclid(n),
-            WrapMode::Clamp => i.clamp(0, n - 1),
-            WrapMode::Mirror => {
-                let k = i.rem_euclid(2 * n);
-                if k >= n {
-                    2 * n - 1 - k
-                } else {
-                    k
-                }
-            }
-        }) as usize
+        match self {
+            WrapMode::Repeat => rem(i, n) as usize,
+            WrapMode::Clamp => i.clamp(0, n - 1) as usize,
+            WrapMode::Mirror => mirror(rem(i, 2 * n), n),
+        }
     }
 
     /// `[self.apply(i, n), self.apply(i + 1, n)]` with at most one division, and none where
-    /// `n` is a power of two (the remainder is then a mask, for negative `i` too).
-    #[inline]
+    /// `n` is a power of two.
+    #[inline(always)]
     pub fn apply_pair(self, i: i64, n: i64) -> [usize; 2] {
+        // The period's remainder once; the next index's is one more, or 0 past the period.
+        let next = |k: i64, m: i64| if k + 1 == m { 0 } else { k + 1 };
         match self {
             WrapMode::Clamp => [i.clamp(0, n - 1) as usize, (i + 1).clamp(0, n - 1) as usize],
             WrapMode::Repeat => {
-                let k = if n & (n - 1) == 0 { i & (n - 1) } else { i.rem_euclid(n) };
-                [k as usize, if k + 1 == n { 0 } else { k as usize + 1 }]
+                let k = rem(i, n);
+                [k as usize, next(k, n) as usize]
             }
             WrapMode::Mirror => {
-                let m = 2 * n;
-                let k = if m & (m - 1) == 0 { i & (m - 1) } else { i.rem_euclid(m) };
-                let k1 = if k + 1 == m { 0 } else { k + 1 };
-                let fold = |k: i64| (if k >= n { m - 1 - k } else { k }) as usize;
-                [fold(k), fold(k1)]
+                let k = rem(i, 2 * n);
+                [mirror(k, n), mirror(next(k, 2 * n), n)]
             }
         }
     }
+}
+
+/// `i.rem_euclid(n)`, as a mask where `n` is a power of two (right for negative `i` too).
+#[inline]
+fn rem(i: i64, n: i64) -> i64 {
+    if n & (n - 1) == 0 {
+        i & (n - 1)
+    } else {
+        i.rem_euclid(n)
+    }
+}
+
+/// A position `k` in [0, 2n) of a mirrored period, folded to [0, n).
+#[inline]
+fn mirror(k: i64, n: i64) -> usize {
+    (if k >= n { 2 * n - 1 - k } else { k }) as usize
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -221,14 +228,21 @@ impl Bitmap {
 
     #[inline]
     pub fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
+        self.bilinear_wrapped(uv, wrap, wrap)
+    }
+
+    /// [`Bitmap::bilinear`] with its own wrap along each axis (an environment map repeats
+    /// around and clamps at the poles). Always inlined, so that wraps known at the call fold.
+    #[inline(always)]
+    pub fn bilinear_wrapped(&self, uv: Vec2, wrap_x: WrapMode, wrap_y: WrapMode) -> Rgb {
         let px = uv.x * self.width as f32 - 0.5;
         let py = uv.y * self.height as f32 - 0.5;
         let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
         let (tx, ty) = (px - fx0, py - fy0);
         let (w, h) = (self.width as i64, self.height as i64);
         let (x0, y0) = (fx0 as i64, fy0 as i64);
-        let x = wrap.apply_pair(x0, w);
-        let y = wrap.apply_pair(y0, h);
+        let x = wrap_x.apply_pair(x0, w);
+        let y = wrap_y.apply_pair(y0, h);
         let top = self.texel(x[0], y[0]) * (1.0 - tx) + self.texel(x[1], y[0]) * tx;
         let bottom = self.texel(x[0], y[1]) * (1.0 - tx) + self.texel(x[1], y[1]) * tx;
         top * (1.0 - ty) + bottom * ty
@@ -327,9 +341,17 @@ mod load_tests {
                         [mode.apply(i, n), mode.apply(i + 1, n)],
                         "{mode:?} {i} {n}"
                     );
+                    // apply's masks for powers of two, against the remainders themselves.
                     if mode == WrapMode::Repeat {
-                        // apply's own mask for powers of two, against the remainder.
                         assert_eq!(mode.apply(i, n), i.rem_euclid(n) as usize, "{i} {n}");
+                    }
+                    if mode == WrapMode::Mirror {
+                        let k = i.rem_euclid(2 * n);
+                        assert_eq!(
+                            mode.apply(i, n),
+                            (if k >= n { 2 * n - 1 - k } else { k }) as usize,
+                            "{i} {n}"
+                        );
                     }
                 }
             }
