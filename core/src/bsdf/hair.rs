@@ -262,27 +262,51 @@ impl Hair {
     }
 }
 
-/// ln I0(x) without overflow.
+/// ln I0(x) without overflow: above 3.75 from the scaled form, x - ln(x) / 2 + ln(poly).
 fn log_i0(x: f32) -> f32 {
-    if x > 12.0 {
-        x + 0.5 * (-(2.0 * PI).ln() + (1.0 / x).ln() + 1.0 / (8.0 * x))
+    let x = x.abs();
+    if x <= 3.75 {
+        i0_small(x).ln()
     } else {
-        i0(x).ln()
+        x - 0.5 * x.ln() + i0_scaled_large(x).ln()
     }
 }
 
-/// Modified Bessel function of the first kind, order 0 (power series).
+/// Modified Bessel function of the first kind, order 0.
+///
+/// The polynomial fits of Abramowitz and Stegun 9.8.1 and 9.8.2: I0 for |x| <= 3.75 within
+/// 1.6e-7, and sqrt(x) e^-x I0(x) above it within 1.9e-7 (about 5e-7 relative), in a dozen
+/// multiply-adds where the power series took up to 40 f64 divisions; Mp evaluates it for every
+/// lobe of every hair vertex.
 fn i0(x: f32) -> f32 {
-    let x2 = (x as f64) * (x as f64) * 0.25;
-    let (mut sum, mut term) = (1.0f64, 1.0f64);
-    for k in 1..40 {
-        term *= x2 / (k as f64 * k as f64);
-        sum += term;
-        if term < 1e-17 * sum {
-            break;
-        }
+    let x = x.abs();
+    if x <= 3.75 {
+        i0_small(x)
+    } else {
+        i0_scaled_large(x) * x.exp() / x.sqrt()
     }
-    sum as f32
+}
+
+/// A&S 9.8.1: I0(x) for |x| <= 3.75, in t = (x / 3.75)^2.
+#[inline]
+fn i0_small(x: f32) -> f32 {
+    let t = (x / 3.75) * (x / 3.75);
+    1.0 + t
+        * (3.515_622_9
+            + t * (3.089_942_4 + t * (1.206_749_2 + t * (0.265_973_2 + t * (0.036_076_8 + t * 0.004_581_3)))))
+}
+
+/// A&S 9.8.2: sqrt(x) e^-x I0(x) for x >= 3.75, in t = 3.75 / x.
+#[inline]
+fn i0_scaled_large(x: f32) -> f32 {
+    let t = 3.75 / x;
+    0.398_942_28
+        + t * (0.013_285_92
+            + t * (0.002_253_19
+                + t * (-0.001_575_65
+                    + t * (0.009_162_81
+                        + t * (-0.020_577_06
+                            + t * (0.026_355_37 + t * (-0.016_476_33 + t * 0.003_923_77)))))))
 }
 
 /// d'Eon et al. 2011: Mp = exp(-sin_i sin_o / v) I0(cos_i cos_o / v) / (2 v sinh(1 / v)),
@@ -526,6 +550,53 @@ mod tests {
                 assert!((integral - 1.0).abs() < 0.01, "v {v} sin_o {sin_o}: {integral}");
             }
         }
+    }
+
+    #[test]
+    /// I0 and ln I0 by the polynomial fits against the power series in f64 (summed until its
+    /// terms no longer count), over the arguments Mp passes (cos cos / v: up to 1 / v, v down
+    /// to about 1e-6 at the smallest roughness; the exp form only below 1 / 0.1).
+    fn bessel_i0_fits_match_the_series() {
+        fn series(x: f64) -> f64 {
+            let x2 = x * x * 0.25;
+            let (mut sum, mut term) = (1.0f64, 1.0f64);
+            for k in 1..2000 {
+                term *= x2 / (k as f64 * k as f64);
+                sum += term;
+                if term < 1e-18 * sum {
+                    break;
+                }
+            }
+            sum
+        }
+        fn ln_reference(x: f64) -> f64 {
+            if x <= 50.0 {
+                series(x).ln()
+            } else {
+                // The asymptotic series, its next term below 1e-9 here.
+                let y = 1.0 / x;
+                x - 0.5 * (2.0 * std::f64::consts::PI * x).ln()
+                    + (1.0 + y / 8.0 + 9.0 * y * y / 128.0 + 225.0 * y * y * y / 3072.0).ln()
+            }
+        }
+        let mut worst = (0.0f64, 0.0f64);
+        for k in 0..=20_000 {
+            let x = k as f32 * 0.0005; // 0 to 10: the exp form's whole range
+            let (got, want) = (i0(x) as f64, series(x as f64));
+            let rel = (got - want).abs() / want;
+            assert!(rel < 5e-7, "I0({x}) = {got}, series {want}, relative error {rel:e}");
+            worst.0 = worst.0.max(rel);
+            assert_eq!(i0(-x), i0(x));
+        }
+        for k in 0..=4_000 {
+            let x = (k as f32 * 0.005).exp2() - 1.0; // 0 to about 1e6, denser near 0
+            let (got, want) = (log_i0(x) as f64, ln_reference(x as f64));
+            let err = (got - want).abs() / want.abs().max(1.0);
+            assert!(err < 5e-7, "ln I0({x}) = {got}, series {want}, error {err:e}");
+            worst.1 = worst.1.max(err);
+        }
+        assert!(log_i0(1e30).is_finite() && i0(0.0) == 1.0);
+        eprintln!("worst: I0 relative {:e}, ln I0 {:e}", worst.0, worst.1);
     }
 
     #[test]
