@@ -312,25 +312,32 @@ struct Warp {
 }
 
 /// One level of the warp's tree. Its width and height are even (padded with zeros), so that
-/// the four children of any node of the level above are in it.
+/// the four children of any node of the level above are in it; they are stored together, in
+/// the order [`Level::block`] returns them, so that a step of the descent reads one 16-byte
+/// block.
 #[derive(Clone, Debug)]
 struct Level {
-    w: usize,
-    sums: Vec<f32>,
+    /// Blocks per row (half the padded width).
+    bw: usize,
+    blocks: Vec<[f32; 4]>,
 }
 
 impl Level {
     fn zeros(w: usize, h: usize) -> Level {
-        let (w, h) = (w + (w & 1), h + (h & 1));
-        Level { w, sums: vec![0.0; w * h] }
+        let (bw, bh) = (w.div_ceil(2), h.div_ceil(2));
+        Level { bw, blocks: vec![[0.0; 4]; bw * bh] }
+    }
+
+    /// The entry at (i, k).
+    #[inline]
+    fn at(&mut self, i: usize, k: usize) -> &mut f32 {
+        &mut self.blocks[k / 2 * self.bw + i / 2][(i & 1) + 2 * (k & 1)]
     }
 
     /// The 2 x 2 block at (2x, 2y): [(0, 0), (1, 0), (0, 1), (1, 1)].
     #[inline]
     fn block(&self, x: usize, y: usize) -> [f32; 4] {
-        let top = 2 * y * self.w + 2 * x;
-        let bottom = top + self.w;
-        [self.sums[top], self.sums[top + 1], self.sums[bottom], self.sums[bottom + 1]]
+        self.blocks[y * self.bw + x]
     }
 }
 
@@ -344,14 +351,15 @@ impl Warp {
             for i in 0..nu {
                 let m = warp.cell_mean(i, k);
                 warp.total += m as f64;
-                cur.sums[k / 2 * cur.w + i / 2] += m;
+                *cur.at(i / 2, k / 2) += m;
             }
         }
         while w > 1 || h > 1 {
             let mut next = Level::zeros(w.div_ceil(2), h.div_ceil(2));
             for k in 0..h {
                 for i in 0..w {
-                    next.sums[k / 2 * next.w + i / 2] += cur.sums[k * cur.w + i];
+                    let v = *cur.at(i, k);
+                    *next.at(i / 2, k / 2) += v;
                 }
             }
             warp.levels.push(cur);
@@ -379,6 +387,36 @@ impl Warp {
         }
     }
 
+    /// [`Warp::corners`] of the 2 x 2 cells at (i, k), in [`Level::block`]'s order; cells
+    /// past the grid's edge are zero (as [`Warp::cell_mean`] counts them). Shared vertices are
+    /// read once.
+    #[inline]
+    fn corners_2x2(&self, i: usize, k: usize) -> [[f32; 4]; 4] {
+        match &self.corners {
+            Corners::Vertices(g) if i + 1 < self.nu && k + 1 < self.nv => {
+                let s = self.nu + 1;
+                let row = |r: usize| -> [f32; 3] {
+                    let a = (k + r) * s + i;
+                    [g[a], g[a + 1], g[a + 2]]
+                };
+                let (r0, r1, r2) = (row(0), row(1), row(2));
+                [
+                    [r0[0], r0[1], r1[0], r1[1]],
+                    [r0[1], r0[2], r1[1], r1[2]],
+                    [r1[0], r1[1], r2[0], r2[1]],
+                    [r1[1], r1[2], r2[1], r2[2]],
+                ]
+            }
+            _ => [(i, k), (i + 1, k), (i, k + 1), (i + 1, k + 1)].map(|(i, k)| {
+                if i < self.nu && k < self.nv {
+                    self.corners(i, k)
+                } else {
+                    [0.0; 4]
+                }
+            }),
+        }
+    }
+
     fn cell_mean(&self, i: usize, k: usize) -> f32 {
         if i >= self.nu || k >= self.nv {
             return 0.0;
@@ -399,15 +437,10 @@ impl Warp {
             (x, y) = (2 * x + dx, 2 * y + dy);
         }
         let (i, k) = (2 * x, 2 * y);
-        let cells = [
-            self.cell_mean(i, k),
-            self.cell_mean(i + 1, k),
-            self.cell_mean(i, k + 1),
-            self.cell_mean(i + 1, k + 1),
-        ];
-        let (dx, dy) = choose(cells, &mut ux, &mut uy)?;
+        let quad = self.corners_2x2(i, k);
+        let (dx, dy) = choose(quad.map(|c| 0.25 * (c[0] + c[1] + c[2] + c[3])), &mut ux, &mut uy)?;
         (x, y) = (i + dx, k + dy);
-        let c = self.corners(x, y).map(f64::from);
+        let c = quad[dx + 2 * dy].map(f64::from);
         let fy = sample_linear(uy, c[0] + c[1], c[2] + c[3]);
         let fx = sample_linear(ux, c[0] + (c[2] - c[0]) * fy, c[1] + (c[3] - c[1]) * fy);
         if !(fx.is_finite() && fy.is_finite()) {
@@ -468,7 +501,8 @@ fn choose(v: [f32; 4], ux: &mut f64, uy: &mut f64) -> Option<(usize, usize)> {
     let [a, b, c, d] = v.map(f64::from);
     let (left, right) = (a + c, b + d);
     let sum = left + right;
-    if !(sum > 0.0 && sum.is_finite()) {
+    // (Not `is_finite()`, which compiles to a classification of the bits here.)
+    if !(sum > 0.0 && sum < f64::INFINITY) {
         return None;
     }
     let x = *ux * sum;
