@@ -16,21 +16,25 @@ use obvhs::aabb::Aabb;
 use obvhs::bvh2::builder::build_bvh2;
 use obvhs::BvhBuildParams;
 
-use super::curves::{missed_by4, Segment, Segments4};
+use super::curves::{missed_by4, SegmentAxis, Segments4};
 use super::shapes::Instance;
 use super::{intersect_triangle, Geometry, Interaction, Ray, RayPre, Shape};
 
 /// A primitive in BVH leaf order, 8 bytes: for triangles, `index` is the slot in
-/// [`Accel::tris`] (which holds the vertices and the triangle's index in its mesh); for curves
-/// the segment, for analytic shapes 0.
+/// [`Accel::tris`] (which holds the vertices and the triangle's index in its mesh); for fibre
+/// segments the slot in [`Accel::fibres`] (the segment's axis and its index in its curves);
+/// for analytic shapes 0.
 #[derive(Clone, Copy, Debug)]
 struct PrimRef {
-    /// Shape index, with `TRIANGLE` set for mesh triangles.
+    /// Shape index, with `TRIANGLE` set for mesh triangles and `CURVE` for fibre segments.
     shape: u32,
     index: u32,
 }
 
 const TRIANGLE: u32 = 1 << 31;
+const CURVE: u32 = 1 << 30;
+/// The shape index of a [`PrimRef`].
+const SHAPE: u32 = !(TRIANGLE | CURVE);
 
 /// Primitive count above which the BVH is built with obvhs' very fast settings.
 const FAST_BUILD_ABOVE: usize = 1 << 21;
@@ -170,6 +174,9 @@ pub struct Accel {
     /// Triangles in leaf order, so that traversal reads vertices without indirection through
     /// the mesh; analytic shapes and curves take no entry.
     tris: Vec<PackedTri>,
+    /// Fibre segments' axes in leaf order, so that a leaf's quick miss test reads them
+    /// together, without indirection through the shape.
+    fibres: Vec<SegmentAxis>,
     /// Stack entries a traversal can need: 7 per level below the root, and one.
     stack_size: usize,
     kernel: Kernel,
@@ -368,6 +375,7 @@ struct Builder<'a> {
     nodes: Vec<Node>,
     prims: Vec<PrimRef>,
     tris: Vec<PackedTri>,
+    fibres: Vec<SegmentAxis>,
 }
 
 impl Builder<'_> {
@@ -378,7 +386,7 @@ impl Builder<'_> {
         let aabbs: Vec<Aabb> = refs
             .iter()
             .map(|p| {
-                let (lo, hi) = shapes[(p.shape & !TRIANGLE) as usize].prim_bounds(p.index as usize);
+                let (lo, hi) = shapes[(p.shape & SHAPE) as usize].prim_bounds(p.index as usize);
                 Aabb::new(Vec3A::from(lo), Vec3A::from(hi))
             })
             .collect();
@@ -391,11 +399,16 @@ impl Builder<'_> {
         });
         for &k in &bvh2.primitive_indices {
             let mut p = refs[k as usize];
-            if p.shape & TRIANGLE != 0 {
-                if let Geometry::Mesh(m) = &shapes[(p.shape & !TRIANGLE) as usize].geometry {
+            match &shapes[(p.shape & SHAPE) as usize].geometry {
+                Geometry::Mesh(m) if p.shape & TRIANGLE != 0 => {
                     self.tris.push(PackedTri { v: m.tri(p.index as usize), index: p.index });
                     p.index = self.tris.len() as u32 - 1;
                 }
+                Geometry::Curves(c) if p.shape & CURVE != 0 => {
+                    self.fibres.push(c.segments[p.index as usize].axis(p.index));
+                    p.index = self.fibres.len() as u32 - 1;
+                }
+                _ => {}
             }
             self.prims.push(p);
         }
@@ -456,7 +469,7 @@ impl Builder<'_> {
 fn morton_order(shapes: &[Shape], refs: impl Iterator<Item = PrimRef> + Clone, count: usize) -> Vec<PrimRef> {
     use rayon::slice::ParallelSliceMut;
     let centre = |p: &PrimRef| {
-        let (lo, hi) = shapes[(p.shape & !TRIANGLE) as usize].prim_bounds(p.index as usize);
+        let (lo, hi) = shapes[(p.shape & SHAPE) as usize].prim_bounds(p.index as usize);
         (lo + hi) * 0.5
     };
     let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
@@ -530,17 +543,27 @@ impl Accel {
         let refs = || {
             members.iter().flat_map(|&s| {
                 let shape = &shapes[s as usize];
-                let kind = if matches!(shape.geometry, Geometry::Mesh(_)) { TRIANGLE } else { 0 };
+                let kind = match shape.geometry {
+                    Geometry::Mesh(_) => TRIANGLE,
+                    Geometry::Curves(_) => CURVE,
+                    _ => 0,
+                };
                 (0..shape.prim_count() as u32).map(move |index| PrimRef { shape: s | kind, index })
             })
         };
-        let mut b =
-            Builder { shapes, nodes: vec![EMPTY_NODE], prims: Vec::with_capacity(count), tris: Vec::new() };
+        let mut b = Builder {
+            shapes,
+            nodes: vec![EMPTY_NODE],
+            prims: Vec::with_capacity(count),
+            tris: Vec::new(),
+            fibres: Vec::new(),
+        };
         if count == 0 {
             return Accel {
                 nodes: Vec::new(),
                 prims: Vec::new(),
                 tris: Vec::new(),
+                fibres: Vec::new(),
                 stack_size: 0,
                 kernel,
                 curves,
@@ -587,8 +610,9 @@ impl Accel {
             });
             top_depth + depth
         };
-        let Builder { mut nodes, prims, mut tris, .. } = b;
+        let Builder { mut nodes, prims, mut tris, mut fibres, .. } = b;
         tris.shrink_to_fit();
+        fibres.shrink_to_fit();
         nodes.shrink_to_fit();
         tracing::debug!(
             primitives = prims.len(),
@@ -596,10 +620,20 @@ impl Accel {
             depth,
             bytes = std::mem::size_of_val(nodes.as_slice())
                 + std::mem::size_of_val(prims.as_slice())
-                + std::mem::size_of_val(tris.as_slice()),
+                + std::mem::size_of_val(tris.as_slice())
+                + std::mem::size_of_val(fibres.as_slice()),
             "BVH built"
         );
-        Accel { nodes, prims, tris, stack_size: (WIDTH - 1) * depth + 1, kernel, curves, groups: Vec::new() }
+        Accel {
+            nodes,
+            prims,
+            tris,
+            fibres,
+            stack_size: (WIDTH - 1) * depth + 1,
+            kernel,
+            curves,
+            groups: Vec::new(),
+        }
     }
 
     pub fn prim_count(&self) -> usize {
@@ -629,20 +663,21 @@ impl Accel {
         (self.groups.len(), self.groups.iter().map(|g| g.prim_count()).sum())
     }
 
-    /// Intersects the primitive leaves call `k`.
-    /// `pretested`: a fibre segment has passed the quick rejection already.
+    /// Intersects the primitive leaves call `k` (a fibre segment has passed the leaf's quick
+    /// miss test already).
     #[inline(always)]
-    fn hit<const ANY: bool>(&self, q: &Query, k: usize, tmax: f32, pretested: bool) -> Option<(f32, Vec2)> {
+    fn hit<const ANY: bool>(&self, q: &Query, k: usize, tmax: f32) -> Option<(f32, Vec2)> {
         let (ray, pre) = (q.ray, &q.pre);
         let prim = self.prims[k];
         if prim.shape & TRIANGLE != 0 {
             let [p0, p1, p2] = self.tris[prim.index as usize].v;
             intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
         } else {
-            let shape = &q.shapes[prim.shape as usize];
+            let shape = &q.shapes[(prim.shape & SHAPE) as usize];
             match &shape.geometry {
-                Geometry::Curves(c) if pretested => {
-                    c.intersect_exact(prim.index as usize, ray.o, ray.d, ray.tmin, tmax).map(|h| h.t_aux())
+                Geometry::Curves(c) => {
+                    let i = self.fibres[prim.index as usize].index as usize;
+                    c.intersect_exact(i, ray.o, ray.d, ray.tmin, tmax).map(|h| h.t_aux())
                 }
                 Geometry::Instance(inst) => self.hit_instance(q, inst, tmax, ANY),
                 _ => shape.intersect(prim.index as usize, ray, pre, tmax),
@@ -708,14 +743,19 @@ impl Accel {
         inner: (u32, Vec2, f32),
     ) -> Interaction {
         let prim = self.prims[k as usize];
-        let shape = prim.shape & !TRIANGLE;
-        if prim.shape & TRIANGLE == 0 {
+        let shape = prim.shape & SHAPE;
+        if prim.shape & (TRIANGLE | CURVE) == 0 {
             if let Geometry::Instance(inst) = &shapes[shape as usize].geometry {
                 return self.instance_interaction(shapes, inst, ray, t, inner);
             }
         }
-        let index =
-            if prim.shape & TRIANGLE != 0 { self.tris[prim.index as usize].index } else { prim.index };
+        let index = if prim.shape & TRIANGLE != 0 {
+            self.tris[prim.index as usize].index
+        } else if prim.shape & CURVE != 0 {
+            self.fibres[prim.index as usize].index
+        } else {
+            prim.index
+        };
         shapes[shape as usize].interaction(shape, index as usize, ray, t, aux)
     }
 
@@ -739,27 +779,24 @@ impl Accel {
     }
 
     /// Which of a leaf's primitives are fibre segments that the ray certainly misses (bit `j`
-    /// for the leaf's `j`-th), tested together when the leaf holds two or more, and which were
-    /// tested.
+    /// for the leaf's `j`-th), all tested together.
     #[inline(always)]
-    fn curve_misses(&self, q: &Query, first: u32, count: u32) -> (u32, u32) {
+    fn curve_misses(&self, q: &Query, first: u32, count: u32) -> u32 {
         const _: () = assert!(LEAF_MAX <= 4, "missed_by4 tests four segments");
-        let mut segs: [Option<&Segment>; 4] = [None; 4];
+        let mut lanes: [Option<&SegmentAxis>; 4] = [None; 4];
         let mut curves = 0u32;
         for j in 0..count as usize {
             let prim = self.prims[first as usize + j];
-            if prim.shape & TRIANGLE == 0 {
-                if let Geometry::Curves(c) = &q.shapes[prim.shape as usize].geometry {
-                    segs[j] = Some(&c.segments[prim.index as usize]);
-                    curves |= 1 << j;
-                }
+            if prim.shape & CURVE != 0 {
+                lanes[j] = Some(&self.fibres[prim.index as usize]);
+                curves |= 1 << j;
             }
         }
-        if curves.count_ones() < 2 {
-            return (0, 0); // one segment or none: `Curves::intersect` tests it alone
+        if curves == 0 {
+            return 0;
         }
-        let any = segs[curves.trailing_zeros() as usize].unwrap_or_else(|| unreachable!());
-        (missed_by4(q.ray.o, q.ray.d, &Segments4::gather(segs.map(|s| s.unwrap_or(any)))) & curves, curves)
+        let any = lanes[curves.trailing_zeros() as usize].unwrap_or_else(|| unreachable!());
+        missed_by4(q.ray.o, q.ray.d, &Segments4::gather(lanes.map(|s| s.unwrap_or(any)))) & curves
     }
 
     /// The closest hit along `ray`, if any.
@@ -810,14 +847,12 @@ impl Accel {
             if cur & LEAF != 0 {
                 let first = cur & ((1 << FIRST_BITS) - 1);
                 let count = ((cur & !LEAF) >> FIRST_BITS) + 1;
-                let (skip, tested) =
-                    if self.curves && count > 1 { self.curve_misses(q, first, count) } else { (0, 0) };
+                let skip = if self.curves { self.curve_misses(q, first, count) } else { 0 };
                 for (j, k) in (first..first + count).enumerate() {
                     if skip >> j & 1 != 0 {
                         continue;
                     }
-                    let pretested = tested >> j & 1 != 0;
-                    if let Some((t, aux)) = self.hit::<ANY>(q, k as usize, tmax, pretested) {
+                    if let Some((t, aux)) = self.hit::<ANY>(q, k as usize, tmax) {
                         if t < tmax {
                             tmax = t;
                             q.best = Some((k, aux));
