@@ -1315,3 +1315,95 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod oriented_estimate {
+    use super::*;
+
+    /// Surface area of the box around `segs` (each a capsule-ish segment bounded by its
+    /// larger radius) in the frame `(x, y, z)`.
+    fn area(segs: &[SegmentAxis], frame: [Vec3; 3]) -> f64 {
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        for s in segs {
+            for p in [s.p0, s.p0 + s.v] {
+                for a in 0..3 {
+                    let x = frame[a].dot(p);
+                    lo[a] = lo[a].min(x - s.r);
+                    hi[a] = hi[a].max(x + s.r);
+                }
+            }
+        }
+        let e: Vec<f64> = (0..3).map(|a| (hi[a] - lo[a]) as f64).collect();
+        2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
+    }
+
+    fn oriented(segs: &[SegmentAxis]) -> f64 {
+        let first = segs[0].v;
+        let z = segs.iter().fold(Vec3::ZERO, |acc, s| acc + if s.v.dot(first) < 0.0 { -s.v } else { s.v });
+        let z = z.normalize_or(Vec3::Z);
+        let x = z.any_orthonormal_vector();
+        area(segs, [x, z.cross(x), z])
+    }
+
+    fn gather(a: &Accel, c: u32, out: &mut Vec<SegmentAxis>) {
+        if c & LEAF != 0 {
+            let first = c & ((1 << FIRST_BITS) - 1);
+            let count = ((c & !LEAF) >> FIRST_BITS) + 1;
+            for k in first..first + count {
+                let p = a.prims[k as usize];
+                if p.shape & CURVE != 0 {
+                    out.push(a.fibres[p.index as usize]);
+                }
+            }
+        } else {
+            let n = &a.nodes[c as usize];
+            for lane in 0..WIDTH {
+                if n.used >> lane & 1 != 0 {
+                    gather(a, n.child[lane], out);
+                }
+            }
+        }
+    }
+
+    /// A measurement for docs/BENCHMARKS.md, not a check: on hair.xml, the summed surface
+    /// areas of every child box (the SAH's expected visits, up to one factor) with axis-aligned
+    /// boxes and with boxes along each child's mean fibre direction (the smaller of the two),
+    /// by the child's subtree size; what oriented bounds could save on obvhs' topology.
+    /// `cargo test --release -p furnace-core --lib oriented_boxes_estimate -- --ignored --nocapture`
+    #[test]
+    #[ignore]
+    fn oriented_boxes_estimate() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/hair.xml");
+        let scene = crate::scene::Scene::load(&path, &[]).expect("hair.xml");
+        let a = &scene.accel;
+        let mut by_size = std::collections::BTreeMap::<u32, (f64, f64, usize)>::new();
+        for n in &a.nodes {
+            for lane in 0..WIDTH {
+                if n.used >> lane & 1 == 0 {
+                    continue;
+                }
+                let mut segs = Vec::new();
+                gather(a, n.child[lane], &mut segs);
+                if segs.is_empty() {
+                    continue;
+                }
+                let aa = area(&segs, [Vec3::X, Vec3::Y, Vec3::Z]);
+                let ob = oriented(&segs).min(aa);
+                let bucket = (segs.len() as u32).next_power_of_two();
+                let e = by_size.entry(bucket).or_default();
+                e.0 += aa;
+                e.1 += ob;
+                e.2 += 1;
+            }
+        }
+        let (mut ta, mut to) = (0.0, 0.0);
+        for (size, (aa, ob, n)) in &by_size {
+            println!("subtree <= {size:>6} segments: {n:>6} boxes, oriented / aligned area {:.3}", ob / aa);
+            ta += aa;
+            to += ob;
+        }
+        println!("all child boxes: oriented / aligned area {:.3}", to / ta);
+        assert!(ta.is_finite() && to > 0.0 && to <= ta, "areas {ta} aligned, {to} oriented");
+    }
+}
