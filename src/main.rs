@@ -231,7 +231,7 @@ fn render(a: RenderArgs) -> Result<()> {
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;
     tracing::info!(
-        "rendered {w}x{h}: {} samples ({:.1} spp of at most {spp}) in {secs:.2}s on {threads} threads: {:.3} Msamples/s",
+        "rendered {w}x{h}: {} samples ({:.1} spp of at most {spp}) in {secs:.3}s on {threads} threads: {:.3} Msamples/s",
         stats.samples,
         stats.samples as f64 / (w as f64 * h as f64),
         stats.samples as f64 / secs / 1e6
