@@ -183,6 +183,20 @@ pub struct PixelSum {
 }
 
 impl PixelSum {
+    /// Adds one sample that lands in its own pixel with weight 1 (a box filter of radius
+    /// 0.5): the terms [`Accum::count_sample`] and [`Accum::splat`] add, so a pixel's samples
+    /// summed here and then added with [`Accum::add_pixel`] give the same bits.
+    #[inline]
+    pub fn add_own_sample(&mut self, l: Rgb) {
+        let lum = luminance(l) as f64;
+        self.lum2 = self.lum2.wrapping_add(round_to_i128(lum * lum * (FIXED_BITS_LUM2 as f64).exp2()));
+        self.count += 1;
+        for (sum, v) in self.rgb.iter_mut().zip([l.x, l.y, l.z]) {
+            *sum = sum.wrapping_add(to_fixed(v as f64));
+        }
+        self.weight = self.weight.wrapping_add(1 << FIXED_BITS);
+    }
+
     #[inline]
     fn add(&mut self, o: &PixelSum) {
         for c in 0..3 {
@@ -243,6 +257,14 @@ impl Accum {
             let p = &mut self.pixels[i];
             p.lum2 = p.lum2.wrapping_add(round_to_i128(lum * lum * (FIXED_BITS_LUM2 as f64).exp2()));
             p.count += 1;
+        }
+    }
+
+    /// Adds the sums `p` to pixel (x, y) in image coordinates (nothing outside the rectangle).
+    #[inline]
+    pub fn add_pixel(&mut self, x: u32, y: u32, p: &PixelSum) {
+        if let Some(i) = self.index(x, y) {
+            self.pixels[i].add(p);
         }
     }
 

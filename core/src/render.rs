@@ -6,10 +6,10 @@ use std::sync::Mutex;
 use glam::Vec2;
 use rayon::prelude::*;
 
-use crate::film::{Accum, Filter};
+use crate::film::{Accum, Filter, PixelSum};
 use crate::geometry::RayDifferentials;
 use crate::integrator::{path, Stats};
-use crate::sampler::SampleStream;
+use crate::sampler::PixelSeeds;
 use crate::scene::Scene;
 
 /// Offset of the ray differentials, in pixels.
@@ -84,8 +84,11 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
     for y in r.y0..r.y1 {
         for x in r.x0..r.x1 {
             let (fx_px, fy_px) = (x + film.crop_x, y + film.crop_y);
+            let mut seeds = PixelSeeds::new(seed, fx_px, fy_px);
+            // With a box filter of radius 0.5 the pixel's own sums, added once at its end.
+            let mut own = PixelSum::default();
             for i in r.s0..r.s1 {
-                let mut s = SampleStream::new(seed, fx_px, fy_px, i);
+                let mut s = seeds.stream(i);
                 let [fx, fy, lx, ly] = s.next_4d();
                 let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
                 let lens_u = Vec2::new(lx, ly);
@@ -109,11 +112,11 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                     acc.count_dropped(x, y, why);
                     continue;
                 }
-                acc.count_sample(x, y, l);
                 if own_pixel {
-                    acc.splat(x, y, 1.0, l);
+                    own.add_own_sample(l);
                     continue;
                 }
+                acc.count_sample(x, y, l);
                 // Splat to every pixel whose centre lies within the filter radius.
                 let (px, py) = (x as f32 + fx, y as f32 + fy);
                 let jx0 = (crate::math::ceil(px - radius - 0.5) as i64).max(0);
@@ -132,6 +135,9 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                         }
                     }
                 }
+            }
+            if own_pixel {
+                acc.add_pixel(x, y, &own);
             }
         }
     }

@@ -10,6 +10,8 @@
 //! bounce and deeper) are therefore independent uniform numbers hashed from the same
 //! coordinates: ~10 ns, equally deterministic.
 
+use std::cell::Cell;
+
 use sobol_burley::parts::{self, Int4};
 
 use crate::math::{hash_u32, hash_words};
@@ -20,22 +22,86 @@ pub const SOBOL_SETS: u32 = 5;
 /// Sobol points per (scramble) sequence in `sobol_burley`.
 const SEQUENCE_LEN: u32 = 1 << 16;
 
-/// The stream of one sample of one pixel.
-pub struct SampleStream {
-    index: u32,
+/// What every sample of one pixel shares, within one block of [`SEQUENCE_LEN`] sample indices:
+/// the stream seed hashed from the job seed, the pixel and the block, and each Sobol set's
+/// shuffle and scramble seeds hashed from it, each on its first use. Hashed once a pixel
+/// instead of once a sample and set; the values are the same
+/// (`pixel_seeds_give_the_per_sample_hashes`).
+pub struct PixelSeeds {
+    job_seed: u64,
+    x: u32,
+    y: u32,
+    block: u32,
     seed: u32,
+    sets: [Cell<Option<SetSeeds>>; SOBOL_SETS as usize],
+}
+
+/// A Sobol set's seeds: the index shuffle's and the four dimensions' Owen scrambles.
+#[derive(Clone, Copy)]
+struct SetSeeds {
+    shuffle: u32,
+    scramble: Int4,
+}
+
+impl SetSeeds {
+    /// `sobol_burley::sample_4d`'s seeds for `seed` (see [`sobol_set0`]).
+    fn new(seed: u32) -> SetSeeds {
+        let scramble = Int4::from([seed.wrapping_mul(0x9c8f_2d3b); 4])
+            ^ Int4::from([0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8]);
+        SetSeeds { shuffle: parts::hash(seed ^ 0x79c6_8e4a), scramble: parts::hash_int4(scramble) }
+    }
+}
+
+impl PixelSeeds {
+    /// The seeds of pixel `(x, y)`'s samples under `job_seed`.
+    pub fn new(job_seed: u64, x: u32, y: u32) -> PixelSeeds {
+        let mut p = PixelSeeds { job_seed, x, y, block: 0, seed: 0, sets: Default::default() };
+        p.set_block(0);
+        p
+    }
+
+    fn set_block(&mut self, block: u32) {
+        let j = self.job_seed;
+        self.block = block;
+        self.seed = hash_words(&[j as u32, (j >> 32) as u32, self.x, self.y, block]);
+        self.sets = Default::default();
+    }
+
+    /// Sobol set `set`'s seeds (below [`SOBOL_SETS`]), hashed on first use.
+    #[inline]
+    fn set(&self, set: usize) -> SetSeeds {
+        let cell = &self.sets[set];
+        match cell.get() {
+            Some(s) => s,
+            None => {
+                let s = SetSeeds::new(hash_words(&[self.seed, set as u32]));
+                cell.set(Some(s));
+                s
+            }
+        }
+    }
+
+    /// The stream of sample `index`. Sample indices past the sequence length continue in a
+    /// fresh, independently scrambled sequence (the seeds are hashed again when the block
+    /// changes).
+    #[inline]
+    pub fn stream(&mut self, index: u64) -> SampleStream<'_> {
+        let block = (index / SEQUENCE_LEN as u64) as u32;
+        if block != self.block {
+            self.set_block(block);
+        }
+        SampleStream { pixel: self, index: (index % SEQUENCE_LEN as u64) as u32, set: 0 }
+    }
+}
+
+/// The stream of one sample of one pixel.
+pub struct SampleStream<'a> {
+    pixel: &'a PixelSeeds,
+    index: u32,
     set: u32,
 }
 
-impl SampleStream {
-    pub fn new(job_seed: u64, x: u32, y: u32, index: u64) -> SampleStream {
-        // Sample indices past the sequence length continue in a fresh, independently
-        // scrambled sequence.
-        let block = (index / SEQUENCE_LEN as u64) as u32;
-        let seed = hash_words(&[job_seed as u32, (job_seed >> 32) as u32, x, y, block]);
-        SampleStream { index: (index % SEQUENCE_LEN as u64) as u32, seed, set: 0 }
-    }
-
+impl SampleStream<'_> {
     /// The next 4 dimensions, as one stratified 4-D point in [0, 1)^4.
     #[inline]
     pub fn next_4d(&mut self) -> [f32; 4] {
@@ -56,9 +122,9 @@ impl SampleStream {
     #[inline]
     fn set_4d(&self, set: u32) -> [f32; 4] {
         if set < SOBOL_SETS {
-            return sobol_set0(self.index, hash_words(&[self.seed, set]));
+            return sobol_point(self.index, &self.pixel.set(set as usize));
         }
-        let h = hash_words(&[self.seed, set, self.index]);
+        let h = hash_words(&[self.pixel.seed, set, self.index]);
         let unit = |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
         [unit(1), unit(2), unit(3), unit(4)]
     }
@@ -81,14 +147,18 @@ static SOBOL_TABLES: std::sync::LazyLock<SobolTables> = std::sync::LazyLock::new
 /// the per-bit loop over the index replaced by two table lookups. The same steps as the crate:
 /// shuffle the index by a nested uniform scramble, take its Sobol point, Owen-scramble each
 /// dimension, un-reverse and convert.
-#[inline]
+#[cfg(test)]
 fn sobol_set0(index: u32, seed: u32) -> [f32; 4] {
-    let rev = parts::owen_scramble_rev(index.reverse_bits(), parts::hash(seed ^ 0x79c6_8e4a));
+    sobol_point(index, &SetSeeds::new(seed))
+}
+
+/// [`sobol_set0`] with the seeds hashed already.
+#[inline]
+fn sobol_point(index: u32, seeds: &SetSeeds) -> [f32; 4] {
+    let rev = parts::owen_scramble_rev(index.reverse_bits(), seeds.shuffle);
     let t = &*SOBOL_TABLES;
     let sobol = t.hi[(rev >> 24) as usize] ^ t.lo[((rev >> 16) & 0xff) as usize];
-    let scramble = Int4::from([seed.wrapping_mul(0x9c8f_2d3b); 4])
-        ^ Int4::from([0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8]);
-    parts::owen_scramble_int4_rev(sobol, parts::hash_int4(scramble)).reverse_bits().to_f32_norm()
+    parts::owen_scramble_int4_rev(sobol, seeds.scramble).reverse_bits().to_f32_norm()
 }
 
 /// A 4-D set taken from a [`SampleStream`] and computed on first use.
@@ -100,7 +170,7 @@ pub struct Deferred {
 impl Deferred {
     /// The set's values; `s` must be the stream it was taken from.
     #[inline]
-    pub fn get(&mut self, s: &SampleStream) -> [f32; 4] {
+    pub fn get(&mut self, s: &SampleStream<'_>) -> [f32; 4] {
         *self.values.get_or_insert_with(|| s.set_4d(self.set))
     }
 }
@@ -121,15 +191,51 @@ pub(crate) fn from_scene(
 mod tests {
     use super::*;
 
+    /// The first `n` sets of sample `index` of pixel `(x, y)`, through a fresh [`PixelSeeds`].
+    fn sets(job_seed: u64, x: u32, y: u32, index: u64, n: usize) -> Vec<[f32; 4]> {
+        let mut p = PixelSeeds::new(job_seed, x, y);
+        let mut s = p.stream(index);
+        (0..n).map(|_| s.next_4d()).collect()
+    }
+
     #[test]
     fn samples_depend_only_on_their_coordinates() {
-        let a = SampleStream::new(7, 3, 4, 100).next_4d();
-        let mut s = SampleStream::new(7, 3, 4, 99);
-        s.next_4d();
-        let b = SampleStream::new(7, 3, 4, 100).next_4d();
+        let a = sets(7, 3, 4, 100, 1)[0];
+        let mut p = PixelSeeds::new(7, 3, 4);
+        p.stream(99).next_4d();
+        let b = p.stream(100).next_4d();
         assert_eq!(a, b);
-        assert_ne!(a, SampleStream::new(7, 4, 3, 100).next_4d());
-        assert_ne!(a, SampleStream::new(8, 3, 4, 100).next_4d());
+        assert_ne!(a, sets(7, 4, 3, 100, 1)[0]);
+        assert_ne!(a, sets(8, 3, 4, 100, 1)[0]);
+    }
+
+    /// The seeds hashed once a pixel give exactly what hashing them for every sample and set
+    /// gave (the stream before `PixelSeeds`, written out here from the crate): any index order,
+    /// across blocks of the sequence, Sobol sets and hashed ones.
+    #[test]
+    fn pixel_seeds_give_the_per_sample_hashes() {
+        let per_sample = |job: u64, x: u32, y: u32, index: u64, set: u32| -> [f32; 4] {
+            let block = (index / SEQUENCE_LEN as u64) as u32;
+            let seed = hash_words(&[job as u32, (job >> 32) as u32, x, y, block]);
+            let i = (index % SEQUENCE_LEN as u64) as u32;
+            if set < SOBOL_SETS {
+                return sobol_burley::sample_4d(i, 0, hash_words(&[seed, set]));
+            }
+            let h = hash_words(&[seed, set, i]);
+            let unit =
+                |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
+            [unit(1), unit(2), unit(3), unit(4)]
+        };
+        for (job, x, y) in [(0u64, 0u32, 0u32), (7, 3, 4), (u64::MAX, 1919, 1079), (1 << 40, 5, 9)] {
+            let mut p = PixelSeeds::new(job, x, y);
+            for index in [0u64, 1, 65_535, 65_536, 3, 200_000, 131_071, 65_536, 0, 1 << 33] {
+                let mut s = p.stream(index);
+                for set in 0..SOBOL_SETS + 3 {
+                    let want = per_sample(job, x, y, index, set).map(f32::to_bits);
+                    assert_eq!(s.next_4d().map(f32::to_bits), want, "{job} ({x}, {y}) {index} set {set}");
+                }
+            }
+        }
     }
 
     /// A deferred set has the values `next_4d` would have given it, whenever it is computed,
@@ -137,9 +243,9 @@ mod tests {
     #[test]
     fn deferred_sets_match_drawn_ones() {
         for index in [0u64, 5, 70_000] {
-            let mut drawn = SampleStream::new(3, 1, 2, index);
-            let all: Vec<[f32; 4]> = (0..8).map(|_| drawn.next_4d()).collect();
-            let mut s = SampleStream::new(3, 1, 2, index);
+            let all = sets(3, 1, 2, index, 8);
+            let mut p = PixelSeeds::new(3, 1, 2);
+            let mut s = p.stream(index);
             assert_eq!(s.next_4d(), all[0]);
             let mut d1 = s.defer_4d();
             let _unused = s.defer_4d();
@@ -169,8 +275,9 @@ mod tests {
         // 2^k points of an Owen-scrambled Sobol set put exactly one point in each 1/2^k stratum.
         let n = 256;
         let mut seen = vec![false; n];
+        let mut p = PixelSeeds::new(1, 10, 20);
         for i in 0..n as u64 {
-            let v = SampleStream::new(1, 10, 20, i).next_4d();
+            let v = p.stream(i).next_4d();
             for c in v {
                 assert!((0.0..1.0).contains(&c));
             }
