@@ -46,7 +46,11 @@ const LEAF_MAX: u32 = 4;
 /// A child reference with this bit set is a leaf: `count - 1` in the next three bits, the first
 /// primitive (in leaf order) in the low 28.
 const LEAF: u32 = 1 << 31;
+/// A leaf with this bit set holds only triangles (one block of [`LeafTris`]): x86 kernels test
+/// them together.
+const TRI_LEAF: u32 = 1 << 30;
 const FIRST_BITS: u32 = 28;
+const _: () = assert!(LEAF_MAX <= 4, "a leaf's count takes two bits, its triangles four lanes");
 /// Most primitives one BVH can name.
 pub const MAX_PRIMS: usize = 1 << FIRST_BITS;
 
@@ -110,11 +114,63 @@ impl Node {
     }
 }
 
-/// A triangle's vertices packed for traversal, and its index in the mesh.
-#[derive(Clone, Copy, Debug)]
-struct PackedTri {
-    v: [Vec3; 3],
-    index: u32,
+/// Triangles in leaf order, packed for traversal: each leaf's triangles (1 to 4) as one block
+/// of structure of arrays, `data[9 slot0 + (3 vertex + axis) n + lane]` for a leaf whose `n`
+/// triangles take slots `slot0..slot0 + n`, so that a leaf's triangles load into the lanes of
+/// one register per coordinate (past its `n` lanes, what follows: three floats of padding end
+/// the data); and for each slot the triangle's index in its mesh, with its lane and its leaf's
+/// count in the top bits. 40 bytes a triangle.
+#[derive(Default)]
+struct LeafTris {
+    data: Vec<f32>,
+    index: Vec<u32>,
+}
+
+/// The top bits of a [`LeafTris`] index: lane (bits 28-29), leaf count - 1 (bits 30-31).
+const LANE_SHIFT: u32 = 28;
+const _: () = assert!(MAX_PRIMS <= 1 << LANE_SHIFT, "a mesh index fits below the lane");
+
+impl LeafTris {
+    /// Appends a leaf's triangles (vertices and mesh indices); returns the first one's slot.
+    fn push(&mut self, tris: &[([Vec3; 3], u32)]) -> u32 {
+        let (n, slot0) = (tris.len(), self.index.len());
+        debug_assert!((1..=LEAF_MAX as usize).contains(&n));
+        self.data.truncate(9 * slot0); // the padding
+        for v in 0..3 {
+            for a in 0..3 {
+                self.data.extend(tris.iter().map(|(p, _)| p[v][a]));
+            }
+        }
+        self.data.extend([0.0; 3]);
+        for (lane, &(_, index)) in tris.iter().enumerate() {
+            self.index.push(index | (lane as u32) << LANE_SHIFT | (n as u32 - 1) << (LANE_SHIFT + 2));
+        }
+        slot0 as u32
+    }
+
+    /// The triangle in `slot`: its vertices.
+    #[inline(always)]
+    fn vertices(&self, slot: usize) -> [Vec3; 3] {
+        let e = self.index[slot];
+        let (lane, n) = ((e >> LANE_SHIFT & 3) as usize, (e >> (LANE_SHIFT + 2)) as usize + 1);
+        let block = &self.data[9 * (slot - lane)..];
+        [0, 1, 2].map(|v| Vec3::from_array([0, 1, 2].map(|a| block[(3 * v + a) * n + lane])))
+    }
+
+    /// The triangle in `slot`: its index in its mesh.
+    #[inline(always)]
+    fn mesh_index(&self, slot: usize) -> u32 {
+        self.index[slot] & ((1 << LANE_SHIFT) - 1)
+    }
+
+    fn bytes(&self) -> usize {
+        std::mem::size_of_val(self.data.as_slice()) + std::mem::size_of_val(self.index.as_slice())
+    }
+
+    fn shrink_to_fit(&mut self) {
+        self.data.shrink_to_fit();
+        self.index.shrink_to_fit();
+    }
 }
 
 /// The instruction set that tests a node's eight boxes.
@@ -172,8 +228,8 @@ pub struct Accel {
     /// `prims[k]` is the primitive that leaves call `k`.
     prims: Vec<PrimRef>,
     /// Triangles in leaf order, so that traversal reads vertices without indirection through
-    /// the mesh; analytic shapes and curves take no entry.
-    tris: Vec<PackedTri>,
+    /// the mesh and tests a leaf's triangles together; analytic shapes and curves take no slot.
+    tris: LeafTris,
     /// Fibre segments' axes in leaf order, so that a leaf's quick miss test reads them
     /// together, without indirection through the shape.
     fibres: Vec<SegmentAxis>,
@@ -259,7 +315,120 @@ fn test_scalar(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WID
 mod x86 {
     use std::arch::x86_64::*;
 
-    use super::{BoxRay, Node, FAR_SCALE, WIDTH};
+    use std::mem::MaybeUninit;
+
+    use super::{BoxRay, Node, QuadHits, TriRay, FAR_SCALE, WIDTH};
+    use crate::math::gamma;
+
+    /// [`super::super::intersect_triangle`] on four lanes: the same IEEE operations in the
+    /// same order (no fused multiply-add), so each lane's values are the scalar test's, bit for
+    /// bit; `None` if one of the `n` lanes has an edge function exactly 0 (the scalar test then
+    /// takes f64 arithmetic for it).
+    #[inline(always)]
+    pub unsafe fn quad_sse(
+        block: *const f32,
+        n: usize,
+        r: &TriRay,
+        tmin: f32,
+        tmax: f32,
+        out: &mut MaybeUninit<QuadHits>,
+    ) -> Option<u32> {
+        let [kx, ky, kz] = r.k;
+        let valid = (1u32 << n) - 1;
+        // Lanes past `n` hold whatever follows (the next coordinates, or padding): masked out.
+        // Each vertex's arrays start 3 n apart; an axis's array k n into them.
+        let (xn, yn, zn) = (kx * n, ky * n, kz * n);
+        let vertices = [block, block.add(3 * n), block.add(6 * n)];
+        let load = |v: usize, an: usize| _mm_loadu_ps(vertices[v].add(an));
+        let (ox, oy, oz) = (_mm_set1_ps(r.o[0]), _mm_set1_ps(r.o[1]), _mm_set1_ps(r.o[2]));
+        let (sx, sy, sz) = (_mm_set1_ps(r.s[0]), _mm_set1_ps(r.s[1]), _mm_set1_ps(r.s[2]));
+        // Vertex v relative to the origin, on the permuted axes, sheared.
+        let vertex = |v: usize| {
+            let az = _mm_sub_ps(load(v, zn), oz);
+            let x = _mm_add_ps(_mm_sub_ps(load(v, xn), ox), _mm_mul_ps(sx, az));
+            let y = _mm_add_ps(_mm_sub_ps(load(v, yn), oy), _mm_mul_ps(sy, az));
+            (x, y, az)
+        };
+        let ((ax, ay, a_z), (bx, by, b_z), (cx, cy, c_z)) = (vertex(0), vertex(1), vertex(2));
+        let u = _mm_sub_ps(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx));
+        let v = _mm_sub_ps(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx));
+        let w = _mm_sub_ps(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax));
+        let zero = _mm_setzero_ps();
+        let on_edge =
+            _mm_or_ps(_mm_or_ps(_mm_cmpeq_ps(u, zero), _mm_cmpeq_ps(v, zero)), _mm_cmpeq_ps(w, zero));
+        if _mm_movemask_ps(on_edge) as u32 & valid != 0 {
+            return None;
+        }
+        let any_neg =
+            _mm_or_ps(_mm_or_ps(_mm_cmplt_ps(u, zero), _mm_cmplt_ps(v, zero)), _mm_cmplt_ps(w, zero));
+        let any_pos =
+            _mm_or_ps(_mm_or_ps(_mm_cmpgt_ps(u, zero), _mm_cmpgt_ps(v, zero)), _mm_cmpgt_ps(w, zero));
+        let mut miss = _mm_and_ps(any_neg, any_pos);
+        let det = _mm_add_ps(_mm_add_ps(u, v), w);
+        miss = _mm_or_ps(miss, _mm_cmpeq_ps(det, zero));
+        // Most leaves are passed by: out as soon as every lane has missed.
+        if !(_mm_movemask_ps(miss) as u32) & valid == 0 {
+            return Some(0);
+        }
+        let (az, bz, cz) = (_mm_mul_ps(sz, a_z), _mm_mul_ps(sz, b_z), _mm_mul_ps(sz, c_z));
+        let t_scaled = _mm_add_ps(_mm_add_ps(_mm_mul_ps(u, az), _mm_mul_ps(v, bz)), _mm_mul_ps(w, cz));
+        let (lo, hi) = (_mm_mul_ps(_mm_set1_ps(tmin), det), _mm_mul_ps(_mm_set1_ps(tmax), det));
+        let neg_out = _mm_or_ps(_mm_cmpge_ps(t_scaled, lo), _mm_cmplt_ps(t_scaled, hi));
+        let pos_out = _mm_or_ps(_mm_cmple_ps(t_scaled, lo), _mm_cmpgt_ps(t_scaled, hi));
+        miss = _mm_or_ps(miss, _mm_and_ps(_mm_cmplt_ps(det, zero), neg_out));
+        miss = _mm_or_ps(miss, _mm_and_ps(_mm_cmpgt_ps(det, zero), pos_out));
+        if !(_mm_movemask_ps(miss) as u32) & valid == 0 {
+            return Some(0);
+        }
+        let inv_det = _mm_div_ps(_mm_set1_ps(1.0), det);
+        let t = _mm_mul_ps(t_scaled, inv_det);
+        // The error bound of t (all operands are magnitudes, so max_ps is f32::max here).
+        let abs = |x: __m128| _mm_andnot_ps(_mm_set1_ps(-0.0), x);
+        let max3 = |a: __m128, b: __m128, c: __m128| _mm_max_ps(_mm_max_ps(abs(a), abs(b)), abs(c));
+        let g = |n: i32| _mm_set1_ps(gamma(n));
+        let max_zt = max3(az, bz, cz);
+        let delta_z = _mm_mul_ps(g(3), max_zt);
+        let max_xt = max3(ax, bx, cx);
+        let max_yt = max3(ay, by, cy);
+        let delta_x = _mm_mul_ps(g(5), _mm_add_ps(max_xt, max_zt));
+        let delta_y = _mm_mul_ps(g(5), _mm_add_ps(max_yt, max_zt));
+        let delta_e = _mm_mul_ps(
+            _mm_set1_ps(2.0),
+            _mm_add_ps(
+                _mm_add_ps(_mm_mul_ps(_mm_mul_ps(g(2), max_xt), max_yt), _mm_mul_ps(delta_y, max_xt)),
+                _mm_mul_ps(delta_x, max_yt),
+            ),
+        );
+        let max_e = max3(u, v, w);
+        let delta_t = _mm_mul_ps(
+            _mm_mul_ps(
+                _mm_set1_ps(3.0),
+                _mm_add_ps(
+                    _mm_add_ps(_mm_mul_ps(_mm_mul_ps(g(3), max_e), max_zt), _mm_mul_ps(delta_e, max_zt)),
+                    _mm_mul_ps(delta_z, max_e),
+                ),
+            ),
+            abs(inv_det),
+        );
+        miss = _mm_or_ps(miss, _mm_cmple_ps(t, delta_t));
+        let mask = !(_mm_movemask_ps(miss) as u32) & valid;
+        if mask == 0 {
+            return Some(0);
+        }
+        let store = |x: __m128| {
+            let mut a = [0.0f32; 4];
+            _mm_storeu_ps(a.as_mut_ptr(), x);
+            a
+        };
+        out.write(QuadHits {
+            t: store(t),
+            t_scaled: store(t_scaled),
+            det: store(det),
+            b1: store(_mm_mul_ps(v, inv_det)),
+            b2: store(_mm_mul_ps(w, inv_det)),
+        });
+        Some(mask)
+    }
 
     /// [`super::test_scalar`] on two halves of four lanes.
     #[inline(always)]
@@ -316,12 +485,33 @@ mod x86 {
 
 /// A box test as a type, so that traversal is compiled once per kernel.
 trait BoxTest {
+    /// Whether the kernel tests a leaf's triangles together ([`BoxTest::quad`]).
+    const QUADS: bool;
     /// # Safety
     /// The CPU must have the kernel's instructions.
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]);
+    /// [`intersect_triangle`] on the `n` triangles of a [`LeafTris`] block, all against
+    /// `tmax`: the lanes that hit (their values in `out`, written only if there are any), or
+    /// `None` if a lane's ray passes exactly through an edge (which takes f64 arithmetic).
+    ///
+    /// # Safety
+    /// The CPU must have the kernel's instructions; `block` must be readable for
+    /// `8 n + 4` floats.
+    unsafe fn quad(
+        block: *const f32,
+        n: usize,
+        r: &TriRay,
+        tmin: f32,
+        tmax: f32,
+        out: &mut MaybeUninit<QuadHits>,
+    ) -> Option<u32> {
+        let _ = (block, n, r, tmin, tmax, out);
+        None
+    }
 }
 struct ScalarTest;
 impl BoxTest for ScalarTest {
+    const QUADS: bool = false;
     #[inline(always)]
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         test_scalar(node, r, tmin, tmax)
@@ -331,18 +521,84 @@ impl BoxTest for ScalarTest {
 struct SseTest;
 #[cfg(target_arch = "x86_64")]
 impl BoxTest for SseTest {
+    const QUADS: bool = true;
     #[inline(always)]
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         x86::test_sse(node, r, tmin, tmax)
+    }
+    #[inline(always)]
+    unsafe fn quad(
+        block: *const f32,
+        n: usize,
+        r: &TriRay,
+        tmin: f32,
+        tmax: f32,
+        out: &mut MaybeUninit<QuadHits>,
+    ) -> Option<u32> {
+        x86::quad_sse(block, n, r, tmin, tmax, out)
     }
 }
 #[cfg(target_arch = "x86_64")]
 struct AvxTest;
 #[cfg(target_arch = "x86_64")]
 impl BoxTest for AvxTest {
+    const QUADS: bool = true;
     #[inline(always)]
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         x86::test_avx2(node, r, tmin, tmax)
+    }
+    #[inline(always)]
+    unsafe fn quad(
+        block: *const f32,
+        n: usize,
+        r: &TriRay,
+        tmin: f32,
+        tmax: f32,
+        out: &mut MaybeUninit<QuadHits>,
+    ) -> Option<u32> {
+        x86::quad_sse(block, n, r, tmin, tmax, out)
+    }
+}
+
+/// A ray's constants for [`intersect_triangle`] on a quad: its origin and shear along the
+/// axes [`RayPre`] permutes to (x, y, z).
+#[derive(Clone, Copy)]
+struct TriRay {
+    k: [usize; 3],
+    o: [f32; 3],
+    s: [f32; 3],
+}
+
+impl TriRay {
+    #[inline(always)]
+    fn new(ray: &Ray, pre: &RayPre) -> TriRay {
+        let k = [pre.kx, pre.ky, pre.kz];
+        let o = ray.o.to_array();
+        TriRay { k, o: k.map(|a| o[a]), s: [pre.sx, pre.sy, pre.sz] }
+    }
+}
+
+/// What [`intersect_triangle`] computes on each lane of a quad, for the lanes that hit within
+/// `[tmin, tmax]`: distances, scaled distances and determinants (to test them again against a
+/// closer `tmax`) and barycentrics.
+struct QuadHits {
+    t: [f32; 4],
+    t_scaled: [f32; 4],
+    det: [f32; 4],
+    b1: [f32; 4],
+    b2: [f32; 4],
+}
+
+impl QuadHits {
+    /// Whether lane `j`'s hit passes [`intersect_triangle`]'s test against `tmax`.
+    #[inline(always)]
+    fn within(&self, j: usize, tmax: f32) -> bool {
+        let (ts, det) = (self.t_scaled[j], self.det[j]);
+        if det < 0.0 {
+            !(ts < tmax * det)
+        } else {
+            !(ts > tmax * det)
+        }
     }
 }
 
@@ -374,7 +630,7 @@ struct Builder<'a> {
     shapes: &'a [Shape],
     nodes: Vec<Node>,
     prims: Vec<PrimRef>,
-    tris: Vec<PackedTri>,
+    tris: LeafTris,
     fibres: Vec<SegmentAxis>,
 }
 
@@ -393,24 +649,48 @@ impl Builder<'_> {
         let bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
         drop(aabbs);
         let offset = self.prims.len() as u32;
+        let order = &bvh2.primitive_indices;
         let depth = self.collapse(&bvh2, slot, |leaf| {
             debug_assert!((1..=LEAF_MAX).contains(&leaf.prim_count));
-            LEAF | (leaf.prim_count - 1) << FIRST_BITS | (offset + leaf.first_index)
+            let range = leaf.first_index as usize..(leaf.first_index + leaf.prim_count) as usize;
+            let all_tris = order[range].iter().all(|&k| refs[k as usize].shape & TRIANGLE != 0);
+            LEAF | if all_tris { TRI_LEAF } else { 0 }
+                | (leaf.prim_count - 1) << FIRST_BITS
+                | (offset + leaf.first_index)
         });
-        for &k in &bvh2.primitive_indices {
-            let mut p = refs[k as usize];
-            match &shapes[(p.shape & SHAPE) as usize].geometry {
-                Geometry::Mesh(m) if p.shape & TRIANGLE != 0 => {
-                    self.tris.push(PackedTri { v: m.tri(p.index as usize), index: p.index });
-                    p.index = self.tris.len() as u32 - 1;
+        // Leaf by leaf, in leaf order: its triangles become one block of `tris`.
+        let mut leaves: Vec<(usize, usize)> = bvh2
+            .nodes
+            .iter()
+            .filter(|n| n.is_leaf())
+            .map(|n| (n.first_index as usize, n.prim_count as usize))
+            .collect();
+        leaves.sort_unstable();
+        let mut tris = Vec::with_capacity(LEAF_MAX as usize);
+        for (first, count) in leaves {
+            let start = self.prims.len();
+            tris.clear();
+            for &k in &order[first..first + count] {
+                let mut p = refs[k as usize];
+                match &shapes[(p.shape & SHAPE) as usize].geometry {
+                    Geometry::Mesh(m) if p.shape & TRIANGLE != 0 => {
+                        tris.push((m.tri(p.index as usize), p.index));
+                        p.index = tris.len() as u32 - 1; // the lane, until the block is placed
+                    }
+                    Geometry::Curves(c) if p.shape & CURVE != 0 => {
+                        self.fibres.push(c.segments[p.index as usize].axis(p.index));
+                        p.index = self.fibres.len() as u32 - 1;
+                    }
+                    _ => {}
                 }
-                Geometry::Curves(c) if p.shape & CURVE != 0 => {
-                    self.fibres.push(c.segments[p.index as usize].axis(p.index));
-                    p.index = self.fibres.len() as u32 - 1;
-                }
-                _ => {}
+                self.prims.push(p);
             }
-            self.prims.push(p);
+            if !tris.is_empty() {
+                let slot0 = self.tris.push(&tris);
+                for p in self.prims[start..].iter_mut().filter(|p| p.shape & TRIANGLE != 0) {
+                    p.index += slot0;
+                }
+            }
         }
         (*bvh2.nodes[0].aabb(), depth)
     }
@@ -555,14 +835,14 @@ impl Accel {
             shapes,
             nodes: vec![EMPTY_NODE],
             prims: Vec::with_capacity(count),
-            tris: Vec::new(),
+            tris: LeafTris::default(),
             fibres: Vec::new(),
         };
         if count == 0 {
             return Accel {
                 nodes: Vec::new(),
                 prims: Vec::new(),
-                tris: Vec::new(),
+                tris: LeafTris::default(),
                 fibres: Vec::new(),
                 stack_size: 0,
                 kernel,
@@ -620,7 +900,7 @@ impl Accel {
             depth,
             bytes = std::mem::size_of_val(nodes.as_slice())
                 + std::mem::size_of_val(prims.as_slice())
-                + std::mem::size_of_val(tris.as_slice())
+                + tris.bytes()
                 + std::mem::size_of_val(fibres.as_slice()),
             "BVH built"
         );
@@ -670,7 +950,7 @@ impl Accel {
         let (ray, pre) = (q.ray, &q.pre);
         let prim = self.prims[k];
         if prim.shape & TRIANGLE != 0 {
-            let [p0, p1, p2] = self.tris[prim.index as usize].v;
+            let [p0, p1, p2] = self.tris.vertices(prim.index as usize);
             intersect_triangle(ray, pre, tmax, p0, p1, p2).map(|(t, _, b1, b2)| (t, Vec2::new(b1, b2)))
         } else {
             let shape = &q.shapes[(prim.shape & SHAPE) as usize];
@@ -750,7 +1030,7 @@ impl Accel {
             }
         }
         let index = if prim.shape & TRIANGLE != 0 {
-            self.tris[prim.index as usize].index
+            self.tris.mesh_index(prim.index as usize)
         } else if prim.shape & CURVE != 0 {
             self.fibres[prim.index as usize].index
         } else {
@@ -831,6 +1111,8 @@ impl Accel {
     #[inline(always)]
     unsafe fn traverse<T: BoxTest, const ANY: bool>(&self, q: &mut Query) -> f32 {
         let r = BoxRay::new(q.ray);
+        let tri_ray = TriRay::new(q.ray, &q.pre);
+        let mut hits = MaybeUninit::<QuadHits>::uninit();
         let tmin = q.ray.tmin;
         let mut tmax = q.ray.tmax;
         let mut inline = [MaybeUninit::<(u32, f32)>::uninit(); INLINE_STACK];
@@ -846,18 +1128,47 @@ impl Accel {
         loop {
             if cur & LEAF != 0 {
                 let first = cur & ((1 << FIRST_BITS) - 1);
-                let count = ((cur & !LEAF) >> FIRST_BITS) + 1;
-                let skip = if self.curves { self.curve_misses(q, first, count) } else { 0 };
-                for (j, k) in (first..first + count).enumerate() {
-                    if skip >> j & 1 != 0 {
-                        continue;
+                let count = ((cur >> FIRST_BITS) & 3) + 1;
+                // A leaf of triangles is tested together (x86 kernels), unless a lane's ray
+                // passes exactly through an edge; the lanes that hit are then taken in order,
+                // each against the closest hit so far, as the loop over primitives would.
+                let quad = if T::QUADS && cur & TRI_LEAF != 0 {
+                    let slot0 = self.prims.get_unchecked(first as usize).index as usize;
+                    // SAFETY: the leaf's block, and at least three floats after it.
+                    let block = self.tris.data.as_ptr().add(9 * slot0);
+                    T::quad(block, count as usize, &tri_ray, tmin, tmax, &mut hits)
+                } else {
+                    None
+                };
+                if let Some(mut mask) = quad {
+                    if mask != 0 {
+                        // SAFETY: `quad` wrote `hits`, as some lane hit.
+                        let h = hits.assume_init_ref();
+                        while mask != 0 {
+                            let j = mask.trailing_zeros() as usize;
+                            mask &= mask - 1;
+                            if h.within(j, tmax) && h.t[j] < tmax {
+                                tmax = h.t[j];
+                                q.best = Some((first + j as u32, Vec2::new(h.b1[j], h.b2[j])));
+                                if ANY {
+                                    return tmax;
+                                }
+                            }
+                        }
                     }
-                    if let Some((t, aux)) = self.hit::<ANY>(q, k as usize, tmax) {
-                        if t < tmax {
-                            tmax = t;
-                            q.best = Some((k, aux));
-                            if ANY {
-                                return t;
+                } else {
+                    let skip = if self.curves { self.curve_misses(q, first, count) } else { 0 };
+                    for (j, k) in (first..first + count).enumerate() {
+                        if skip >> j & 1 != 0 {
+                            continue;
+                        }
+                        if let Some((t, aux)) = self.hit::<ANY>(q, k as usize, tmax) {
+                            if t < tmax {
+                                tmax = t;
+                                q.best = Some((k, aux));
+                                if ANY {
+                                    return t;
+                                }
                             }
                         }
                     }
@@ -1005,6 +1316,90 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Leaves of triangles tested together (the x86 kernels' quads) find bit for bit what
+    /// testing them one at a time (the scalar kernel) finds: distance, triangle, barycentrics
+    /// and point, and the same occlusion answer. Rays straight down onto a grid's vertices and
+    /// edges (edge functions exactly 0: the quad hands the leaf to the one-at-a-time test),
+    /// coincident triangles (ties: the first in leaf order wins), rays from the surface itself
+    /// and random rays through a soup.
+    #[test]
+    fn triangle_quads_match_one_at_a_time() {
+        let n = 8u32;
+        let mut grid = Mesh::default();
+        for y in 0..=n {
+            for x in 0..=n {
+                grid.positions.push(Vec3::new(x as f32, y as f32, 0.0));
+            }
+        }
+        for y in 0..n {
+            for x in 0..n {
+                let i = y * (n + 1) + x;
+                grid.tris.push([i, i + 1, i + n + 2]);
+                grid.tris.push([i, i + n + 2, i + n + 1]);
+                if (x + y) % 3 == 0 {
+                    grid.tris.push([i, i + 1, i + n + 2]); // a coincident copy
+                }
+            }
+        }
+        let mut shapes = soup(600, 21);
+        shapes.push(shape(Geometry::Mesh(grid), "grid"));
+        let accel_of = |kernel| {
+            let mut a = Accel::build(&shapes);
+            a.set_kernel(kernel);
+            a
+        };
+        let kernels = Kernel::available();
+        let accels: Vec<Accel> = kernels.iter().map(|&k| accel_of(k)).collect();
+        assert_eq!(kernels.last(), Some(&Kernel::Scalar), "the reference is last");
+        assert!(accels[0].nodes.len() > 1 && accels[0].tris.index.len() > 100);
+        let mut rays = Vec::new();
+        for k in 0..=4 * n {
+            for j in 0..=4 * n {
+                let (x, y) = (k as f32 * 0.25, j as f32 * 0.25);
+                rays.push(Ray::new(Vec3::new(x, y, 3.0), Vec3::NEG_Z));
+                rays.push(Ray::new(Vec3::new(x, y, -3.0), Vec3::Z));
+                rays.push(Ray::new(Vec3::new(x + 0.3, y - 0.2, 2.0), Vec3::new(-0.3, 0.2, -2.0).normalize()));
+            }
+        }
+        let mut s = 5;
+        for _ in 0..4000 {
+            let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 14.0 - 2.0;
+            let d = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5;
+            rays.push(Ray::new(o, d.normalize()));
+        }
+        let (mut hits, mut on_edges) = (0, 0);
+        for (r, ray) in rays.iter().enumerate() {
+            let key = |a: &Accel| {
+                a.intersect(&shapes, ray).map(|it| {
+                    (
+                        it.t.to_bits(),
+                        it.shape,
+                        it.prim,
+                        it.uv.to_array().map(f32::to_bits),
+                        it.p.to_array().map(f32::to_bits),
+                    )
+                })
+            };
+            let scalar = key(&accels[accels.len() - 1]);
+            for (a, kernel) in accels.iter().zip(&kernels) {
+                assert_eq!(key(a), scalar, "{kernel:?}, ray {r}: {ray:?}");
+                assert_eq!(a.occluded(&shapes, ray), scalar.is_some(), "{kernel:?}, ray {r}");
+                // Again from the hit point, along the surface's other side.
+                if let Some(it) = a.intersect(&shapes, ray) {
+                    let next = it.spawn_ray(ray.d);
+                    let again = |b: &Accel| b.intersect(&shapes, &next).map(|h| (h.t.to_bits(), h.prim));
+                    assert_eq!(again(a), again(&accels[accels.len() - 1]), "{kernel:?}, ray {r} spawned");
+                }
+            }
+            hits += scalar.is_some() as u32;
+            // Straight down onto a grid line or a square's diagonal: an edge function is 0.
+            let (fx, fy) = (ray.o.x.fract(), ray.o.y.fract());
+            on_edges +=
+                (ray.d == Vec3::NEG_Z && scalar.is_some() && (fx == 0.0 || fy == 0.0 || fx == fy)) as u32;
+        }
+        assert!(hits > 3000 && on_edges > 100, "hits {hits}, rays onto edges {on_edges}");
     }
 
     fn shape(geometry: Geometry, name: &str) -> Shape {
