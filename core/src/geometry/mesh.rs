@@ -41,7 +41,9 @@ impl Mesh {
 
     /// Point, error bound, geometric normal, shading normal, uv, dp/du and dp/dv at barycentrics
     /// (b1, b2) of triangle `i`. Without texture coordinates uv = (b1, b2), as in Mitsuba.
-    #[inline]
+    /// Always inlined: a light sample reads only the point, its normal and uv, and what it
+    /// does not read (dp/du, dp/dv, the geometric normal) is then never computed.
+    #[inline(always)]
     pub fn surface(&self, i: usize, b1: f32, b2: f32) -> (Vec3, Vec3, Vec3, Vec3, Vec2, Vec3, Vec3) {
         // In Vec3A (SIMD lanes): lane for lane the same operations as Vec3's, so the same bits,
         // in fewer instructions than Vec3's shuffling. (A build with FMA enabled globally would
