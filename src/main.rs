@@ -285,8 +285,8 @@ pub fn render_local(
         r
     });
     while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = done.recv_timeout(Duration::from_millis(50)) {
-        let st = lock().status(&job)?;
-        progress(st.samples_done, st.samples_total);
+        let (done, total) = lock().progress(&job)?;
+        progress(done, total);
     }
     worker.join().map_err(|_| anyhow::anyhow!("the render worker panicked"))??;
     let status = lock().status(&job)?;

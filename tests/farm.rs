@@ -859,6 +859,13 @@ fn a_frame_range_is_one_job_rendered_frame_by_frame() {
         assert_eq!(st.frames[0].state, JobState::Done);
         assert_eq!((st.frames[1].chunks_done, st.frames[2].chunks_done), (3, 0));
         assert_eq!(st.chunks_done, 15);
+        // The progress bar's poll: status's counts without the rest.
+        assert_eq!(c.progress(&job).unwrap(), (st.samples_done, st.samples_total));
+        assert!(st.samples_done > 0 && st.samples_done < st.samples_total);
+        let frame = c.frame_job(&job, numbers[1]).unwrap();
+        let fs = c.status(&frame).unwrap();
+        assert_eq!(c.progress(&frame).unwrap(), (fs.samples_done, fs.samples_total));
+        assert!(c.progress("no-such-job").is_err());
     }
     drop(coord);
     let coord = open_coordinator(&data);
@@ -877,6 +884,7 @@ fn a_frame_range_is_one_job_rendered_frame_by_frame() {
     let st = c.status(&job).unwrap();
     assert_eq!(st.state, JobState::Done);
     assert!(st.frames.iter().all(|f| f.state == JobState::Done && f.samples_done == 40 * 32 * 4));
+    assert_eq!(c.progress(&job).unwrap(), (st.samples_done, st.samples_done));
     for n in numbers {
         // Each frame's result is what rendering that frame alone gives.
         let frame = c.frame_job(&job, n).unwrap();

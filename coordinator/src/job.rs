@@ -434,6 +434,16 @@ impl Job {
         (done, leased, pending)
     }
 
+    /// Samples done, and done plus left (`status`'s `samples_done` and `samples_total`):
+    /// what a progress bar shows, without the error estimate (a pass over every pixel) or
+    /// anything else `status` builds.
+    pub(crate) fn progress(&self) -> (u64, u64) {
+        match &self.released {
+            Some(st) => (st.samples_done, st.samples_total),
+            None => (self.samples_done, self.samples_done + self.samples_left()),
+        }
+    }
+
     /// The job's status: counts, rate, ETA and error estimate, or its final status.
     pub(crate) fn status(&self) -> JobStatus {
         let j = self;

@@ -1219,6 +1219,20 @@ impl Coordinator {
         Ok(self.jobs.get(id).ok_or_else(|| CoordError::Unknown(format!("no job '{id}'")))?.status())
     }
 
+    /// A job's (or frame range's) samples done and in all, as `status` gives them, without
+    /// its error estimate or the rest: for progress bars that poll often.
+    pub fn progress(&self, id: &str) -> Result<(u64, u64), CoordError> {
+        let unknown = || CoordError::Unknown(format!("no job '{id}'"));
+        if let Some(frames) = self.groups.get(id) {
+            let jobs: Vec<&Job> = frames.iter().filter_map(|(_, j)| self.jobs.get(j)).collect();
+            if jobs.is_empty() {
+                return Err(unknown());
+            }
+            return Ok(jobs.iter().map(|j| j.progress()).fold((0, 0), |(d, t), (a, b)| (d + a, t + b)));
+        }
+        Ok(self.jobs.get(id).ok_or_else(unknown)?.progress())
+    }
+
     fn group_status(&self, id: &str, frames: &[(u32, String)]) -> Result<JobStatus, CoordError> {
         let all: Vec<(u32, JobStatus)> =
             frames.iter().filter_map(|(n, j)| Some((*n, self.jobs.get(j)?.status()))).collect();
