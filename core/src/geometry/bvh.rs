@@ -1323,7 +1323,7 @@ mod tests {
     /// and point, and the same occlusion answer. Rays straight down onto a grid's vertices and
     /// edges (edge functions exactly 0: the quad hands the leaf to the one-at-a-time test),
     /// coincident triangles (ties: the first in leaf order wins), rays from the surface itself
-    /// and random rays through a soup.
+    /// and random rays, some ending short, through a soup with balls among its triangles.
     #[test]
     fn triangle_quads_match_one_at_a_time() {
         let n = 8u32;
@@ -1345,6 +1345,13 @@ mod tests {
         }
         let mut shapes = soup(600, 21);
         shapes.push(shape(Geometry::Mesh(grid), "grid"));
+        // Small balls among the soup's triangles: leaves that mix them (one at a time).
+        let mut s = 17;
+        for k in 0..150 {
+            let center = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 10.0;
+            let ball = crate::geometry::Sphere { center, radius: 0.15, rot: glam::Mat3::IDENTITY };
+            shapes.push(shape(Geometry::Sphere(ball), &format!("ball {k}")));
+        }
         let accel_of = |kernel| {
             let mut a = Accel::build(&shapes);
             a.set_kernel(kernel);
@@ -1364,10 +1371,14 @@ mod tests {
             }
         }
         let mut s = 5;
-        for _ in 0..4000 {
+        for k in 0..4000 {
             let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 14.0 - 2.0;
             let d = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5;
-            rays.push(Ray::new(o, d.normalize()));
+            let mut ray = Ray::new(o, d.normalize());
+            if k % 3 == 0 {
+                ray.tmax = 4.0 + xorshift(&mut s) * 4.0; // ends among the triangles
+            }
+            rays.push(ray);
         }
         let (mut hits, mut on_edges) = (0, 0);
         for (r, ray) in rays.iter().enumerate() {
@@ -1744,7 +1755,7 @@ mod oriented_estimate {
     fn gather(a: &Accel, c: u32, out: &mut Vec<SegmentAxis>) {
         if c & LEAF != 0 {
             let first = c & ((1 << FIRST_BITS) - 1);
-            let count = ((c & !LEAF) >> FIRST_BITS) + 1;
+            let count = ((c >> FIRST_BITS) & 3) + 1;
             for k in first..first + count {
                 let p = a.prims[k as usize];
                 if p.shape & CURVE != 0 {
