@@ -8,10 +8,12 @@
 use glam::Vec2;
 
 use super::Stats;
+use crate::bsdf::Bsdf;
 use crate::geometry::{Ray, RayDifferentials};
 use crate::math::{mis_power, Rgb};
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
+use crate::texture::Texture;
 
 /// Lights among which next-event estimation picks by reusing the light sample's first
 /// number (4 of its 23 bits at most).
@@ -116,6 +118,18 @@ pub fn li(
                 it.tex_coord(d)
             }
             _ => it.uv.into(),
+        };
+        // A textured diffuse surface's reflectance, looked up once here instead of by light
+        // sampling's eval and again by bsdf.sample (both read it at `tc`, front side only).
+        // (A constant texture owns nothing: no drop needed.)
+        let looked_up;
+        let bsdf = match bsdf {
+            Bsdf::Diffuse { reflectance } if !reflectance.is_const() && wo.z > 0.0 => {
+                let reflectance = Texture::Const(reflectance.eval(tc));
+                looked_up = std::mem::ManuallyDrop::new(Bsdf::Diffuse { reflectance });
+                &*looked_up
+            }
+            _ => bsdf,
         };
         let [lu, lv, bu, bv] = s.next_4d();
         // The light's choice past REUSE_LIGHTS lights, lobe choice, roulette, and a spare

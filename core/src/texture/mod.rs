@@ -88,6 +88,11 @@ impl Texture {
         }
     }
 
+    /// True when the texture is a constant (no lookup).
+    pub fn is_const(&self) -> bool {
+        matches!(self, Texture::Const(_))
+    }
+
     /// True when the texture is the constant 0.
     pub fn is_black(&self) -> bool {
         matches!(self, Texture::Const(c) if *c == Rgb::ZERO)
