@@ -485,29 +485,11 @@ mod x86 {
 
 /// A box test as a type, so that traversal is compiled once per kernel.
 trait BoxTest {
-    /// Whether the kernel tests a leaf's triangles together ([`BoxTest::quad`]).
+    /// Whether the kernel tests a leaf's triangles together ([`quad`]).
     const QUADS: bool;
     /// # Safety
     /// The CPU must have the kernel's instructions.
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]);
-    /// [`intersect_triangle`] on the `n` triangles of a [`LeafTris`] block, all against
-    /// `tmax`: the lanes that hit (their values in `out`, written only if there are any), or
-    /// `None` if a lane's ray passes exactly through an edge (which takes f64 arithmetic).
-    ///
-    /// # Safety
-    /// The CPU must have the kernel's instructions; `block` must be readable for
-    /// `8 n + 4` floats.
-    unsafe fn quad(
-        block: *const f32,
-        n: usize,
-        r: &TriRay,
-        tmin: f32,
-        tmax: f32,
-        out: &mut MaybeUninit<QuadHits>,
-    ) -> Option<u32> {
-        let _ = (block, n, r, tmin, tmax, out);
-        None
-    }
 }
 struct ScalarTest;
 impl BoxTest for ScalarTest {
@@ -526,17 +508,6 @@ impl BoxTest for SseTest {
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         x86::test_sse(node, r, tmin, tmax)
     }
-    #[inline(always)]
-    unsafe fn quad(
-        block: *const f32,
-        n: usize,
-        r: &TriRay,
-        tmin: f32,
-        tmax: f32,
-        out: &mut MaybeUninit<QuadHits>,
-    ) -> Option<u32> {
-        x86::quad_sse(block, n, r, tmin, tmax, out)
-    }
 }
 #[cfg(target_arch = "x86_64")]
 struct AvxTest;
@@ -547,16 +518,30 @@ impl BoxTest for AvxTest {
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         x86::test_avx2(node, r, tmin, tmax)
     }
-    #[inline(always)]
-    unsafe fn quad(
-        block: *const f32,
-        n: usize,
-        r: &TriRay,
-        tmin: f32,
-        tmax: f32,
-        out: &mut MaybeUninit<QuadHits>,
-    ) -> Option<u32> {
-        x86::quad_sse(block, n, r, tmin, tmax, out)
+}
+
+/// [`intersect_triangle`] on the `n` triangles of a [`LeafTris`] block, all against `tmax`: the
+/// lanes that hit (their values in `out`, written only if there are any), or `None` if a lane's
+/// ray passes exactly through an edge (which takes f64 arithmetic), or where there is no
+/// 4-lane test (kernels without [`BoxTest::QUADS`]).
+///
+/// # Safety
+/// On x86-64, `block` must be readable for `8 n + 4` floats.
+#[inline(always)]
+unsafe fn quad(
+    block: *const f32,
+    n: usize,
+    r: &TriRay,
+    tmin: f32,
+    tmax: f32,
+    out: &mut MaybeUninit<QuadHits>,
+) -> Option<u32> {
+    #[cfg(target_arch = "x86_64")]
+    return x86::quad_sse(block, n, r, tmin, tmax, out);
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (block, n, r, tmin, tmax, out);
+        None
     }
 }
 
@@ -1136,7 +1121,7 @@ impl Accel {
                     let slot0 = self.prims.get_unchecked(first as usize).index as usize;
                     // SAFETY: the leaf's block, and at least three floats after it.
                     let block = self.tris.data.as_ptr().add(9 * slot0);
-                    T::quad(block, count as usize, &tri_ray, tmin, tmax, &mut hits)
+                    quad(block, count as usize, &tri_ray, tmin, tmax, &mut hits)
                 } else {
                     None
                 };
