@@ -176,12 +176,13 @@ fn render(a: RenderArgs) -> Result<()> {
         String::new()
     };
     tracing::info!(
-        "loaded {} in {:.2}s: {} shapes, {} primitives{instanced}, {} lights; tracing with an {}",
+        "loaded {} in {:.2}s: {} shapes, {} primitives{instanced}, {} lights; Sobol sets in {}; tracing with an {}",
         a.scene.display(),
         t0.elapsed().as_secs_f64(),
         scene.shapes.len(),
         scene.accel.prim_count(),
         scene.lights.len(),
+        furnace_core::sampler::instruction_set(),
         scene.accel.kernel().name()
     );
     let plan = scene.describe();

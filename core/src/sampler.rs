@@ -152,6 +152,15 @@ fn sobol_set0(index: u32, seed: u32) -> [f32; 4] {
     sobol_point(index, &SetSeeds::new(seed))
 }
 
+/// The instructions that compute Sobol sets on this CPU (the values are the same either way).
+pub fn instruction_set() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("sse4.1") {
+        return "SSE4.1";
+    }
+    "portable"
+}
+
 /// [`sobol_set0`] with the seeds hashed already: with SSE4.1 where the CPU has it (the same
 /// bits), the crate's portable 4-lane code otherwise.
 #[inline]

@@ -216,8 +216,8 @@ impl Kernel {
 
     pub fn name(self) -> &'static str {
         match self {
-            Kernel::Avx2 => "8-wide BVH, AVX2+FMA",
-            Kernel::Sse => "8-wide BVH, SSE",
+            Kernel::Avx2 => "8-wide BVH, AVX2+FMA, a leaf's triangles in 4 SSE lanes",
+            Kernel::Sse => "8-wide BVH, SSE, a leaf's triangles in 4 SSE lanes",
             Kernel::Scalar => "8-wide BVH, scalar",
         }
     }
