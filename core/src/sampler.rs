@@ -152,10 +152,17 @@ fn sobol_set0(index: u32, seed: u32) -> [f32; 4] {
     sobol_point(index, &SetSeeds::new(seed))
 }
 
+/// Whether this CPU runs [`sse41::sobol_point`] (SSE4.1 and SSSE3; the detection is cached).
+#[cfg(target_arch = "x86_64")]
+#[inline]
+fn has_sse41() -> bool {
+    std::is_x86_feature_detected!("sse4.1") && std::is_x86_feature_detected!("ssse3")
+}
+
 /// The instructions that compute Sobol sets on this CPU (the values are the same either way).
 pub fn instruction_set() -> &'static str {
     #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("sse4.1") {
+    if has_sse41() {
         return "SSE4.1";
     }
     "portable"
@@ -166,8 +173,8 @@ pub fn instruction_set() -> &'static str {
 #[inline]
 fn sobol_point(index: u32, seeds: &SetSeeds) -> [f32; 4] {
     #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("sse4.1") {
-        // SAFETY: the CPU has SSE4.1 (and so SSSE3).
+    if has_sse41() {
+        // SAFETY: the CPU has SSE4.1 and SSSE3.
         return unsafe { sse41::sobol_point(index, seeds) };
     }
     sobol_point_portable(index, seeds)
@@ -339,7 +346,7 @@ mod tests {
     #[test]
     #[cfg(target_arch = "x86_64")]
     fn sobol_point_sse41_is_the_portable_one() {
-        if !std::is_x86_feature_detected!("sse4.1") {
+        if !has_sse41() {
             return; // nothing to compare on this CPU
         }
         for seed in [0u32, 7, 0x9e37_79b9, 0xdead_beef, u32::MAX] {
