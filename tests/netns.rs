@@ -314,7 +314,7 @@ fn workers_in_other_namespaces_through_a_partition_render_the_same_bytes() {
     assert!(!net.delay || took >= 4 * DELAY, "a health check over the delayed cable took {took:?}");
     eprintln!("a health check from w1's namespace: {took:?}");
     // Submitted from this namespace, over the link to c.
-    let (spp, scene) = ("8192", scenes().join("small.xml"));
+    let (spp, scene) = ("16384", scenes().join("small.xml"));
     let out = Command::new(BIN)
         .arg("submit")
         .arg(&scene)
