@@ -16,14 +16,13 @@ use obvhs::aabb::Aabb;
 use obvhs::bvh2::builder::build_bvh2;
 use obvhs::BvhBuildParams;
 
-use super::curves::{missed_by4, SegmentAxis, Segments4};
+use super::curves::{missed_by4, Segment, Segments4};
 use super::shapes::Instance;
 use super::{intersect_triangle, Geometry, Interaction, Ray, RayPre, Shape};
 
 /// A primitive in BVH leaf order, 8 bytes: for triangles, `index` is the slot in
 /// [`Accel::tris`] (which holds the vertices and the triangle's index in its mesh); for fibre
-/// segments the slot in [`Accel::fibres`] (the segment's axis and its index in its curves);
-/// for analytic shapes 0.
+/// segments the segment's index in its curves; for analytic shapes 0.
 #[derive(Clone, Copy, Debug)]
 struct PrimRef {
     /// Shape index, with `TRIANGLE` set for mesh triangles and `CURVE` for fibre segments.
@@ -230,9 +229,6 @@ pub struct Accel {
     /// Triangles in leaf order, so that traversal reads vertices without indirection through
     /// the mesh and tests a leaf's triangles together; analytic shapes and curves take no slot.
     tris: LeafTris,
-    /// Fibre segments' axes in leaf order, so that a leaf's quick miss test reads them
-    /// together, without indirection through the shape.
-    fibres: Vec<SegmentAxis>,
     /// Stack entries a traversal can need: 7 per level below the root, and one.
     stack_size: usize,
     kernel: Kernel,
@@ -616,7 +612,6 @@ struct Builder<'a> {
     nodes: Vec<Node>,
     prims: Vec<PrimRef>,
     tris: LeafTris,
-    fibres: Vec<SegmentAxis>,
 }
 
 impl Builder<'_> {
@@ -661,10 +656,6 @@ impl Builder<'_> {
                     Geometry::Mesh(m) if p.shape & TRIANGLE != 0 => {
                         tris.push((m.tri(p.index as usize), p.index));
                         p.index = tris.len() as u32 - 1; // the lane, until the block is placed
-                    }
-                    Geometry::Curves(c) if p.shape & CURVE != 0 => {
-                        self.fibres.push(c.segments[p.index as usize].axis(p.index));
-                        p.index = self.fibres.len() as u32 - 1;
                     }
                     _ => {}
                 }
@@ -821,14 +812,12 @@ impl Accel {
             nodes: vec![EMPTY_NODE],
             prims: Vec::with_capacity(count),
             tris: LeafTris::default(),
-            fibres: Vec::new(),
         };
         if count == 0 {
             return Accel {
                 nodes: Vec::new(),
                 prims: Vec::new(),
                 tris: LeafTris::default(),
-                fibres: Vec::new(),
                 stack_size: 0,
                 kernel,
                 curves,
@@ -875,9 +864,8 @@ impl Accel {
             });
             top_depth + depth
         };
-        let Builder { mut nodes, prims, mut tris, mut fibres, .. } = b;
+        let Builder { mut nodes, prims, mut tris, .. } = b;
         tris.shrink_to_fit();
-        fibres.shrink_to_fit();
         nodes.shrink_to_fit();
         tracing::debug!(
             primitives = prims.len(),
@@ -885,20 +873,10 @@ impl Accel {
             depth,
             bytes = std::mem::size_of_val(nodes.as_slice())
                 + std::mem::size_of_val(prims.as_slice())
-                + tris.bytes()
-                + std::mem::size_of_val(fibres.as_slice()),
+                + tris.bytes(),
             "BVH built"
         );
-        Accel {
-            nodes,
-            prims,
-            tris,
-            fibres,
-            stack_size: (WIDTH - 1) * depth + 1,
-            kernel,
-            curves,
-            groups: Vec::new(),
-        }
+        Accel { nodes, prims, tris, stack_size: (WIDTH - 1) * depth + 1, kernel, curves, groups: Vec::new() }
     }
 
     pub fn prim_count(&self) -> usize {
@@ -941,8 +919,7 @@ impl Accel {
             let shape = &q.shapes[(prim.shape & SHAPE) as usize];
             match &shape.geometry {
                 Geometry::Curves(c) => {
-                    let i = self.fibres[prim.index as usize].index as usize;
-                    c.intersect_exact(i, ray.o, ray.d, ray.tmin, tmax).map(|h| h.t_aux())
+                    c.intersect_exact(prim.index as usize, ray.o, ray.d, ray.tmin, tmax).map(|h| h.t_aux())
                 }
                 Geometry::Instance(inst) => self.hit_instance(q, inst, tmax, ANY),
                 _ => shape.intersect(prim.index as usize, ray, pre, tmax),
@@ -1014,13 +991,8 @@ impl Accel {
                 return self.instance_interaction(shapes, inst, ray, t, inner);
             }
         }
-        let index = if prim.shape & TRIANGLE != 0 {
-            self.tris.mesh_index(prim.index as usize)
-        } else if prim.shape & CURVE != 0 {
-            self.fibres[prim.index as usize].index
-        } else {
-            prim.index
-        };
+        let index =
+            if prim.shape & TRIANGLE != 0 { self.tris.mesh_index(prim.index as usize) } else { prim.index };
         shapes[shape as usize].interaction(shape, index as usize, ray, t, aux)
     }
 
@@ -1048,20 +1020,22 @@ impl Accel {
     #[inline(always)]
     fn curve_misses(&self, q: &Query, first: u32, count: u32) -> u32 {
         const _: () = assert!(LEAF_MAX <= 4, "missed_by4 tests four segments");
-        let mut lanes: [Option<&SegmentAxis>; 4] = [None; 4];
+        let mut lanes: [Option<&Segment>; 4] = [None; 4];
         let mut curves = 0u32;
         for j in 0..count as usize {
             let prim = self.prims[first as usize + j];
             if prim.shape & CURVE != 0 {
-                lanes[j] = Some(&self.fibres[prim.index as usize]);
-                curves |= 1 << j;
+                if let Geometry::Curves(c) = &q.shapes[(prim.shape & SHAPE) as usize].geometry {
+                    lanes[j] = Some(&c.segments[prim.index as usize]);
+                    curves |= 1 << j;
+                }
             }
         }
         if curves == 0 {
             return 0;
         }
         let any = lanes[curves.trailing_zeros() as usize].unwrap_or_else(|| unreachable!());
-        missed_by4(q.ray.o, q.ray.d, &Segments4::gather(lanes.map(|s| s.unwrap_or(any)))) & curves
+        missed_by4(q.ray.o, q.ray.d, &Segments4::of_segments(lanes.map(|s| s.unwrap_or(any)))) & curves
     }
 
     /// The closest hit along `ray`, if any.
@@ -1709,6 +1683,7 @@ mod tests {
 
 #[cfg(test)]
 mod oriented_estimate {
+    use super::super::curves::SegmentAxis;
     use super::*;
 
     /// Surface area of the box around `segs` (each a capsule-ish segment bounded by its
@@ -1737,21 +1712,21 @@ mod oriented_estimate {
         area(segs, [x, z.cross(x), z])
     }
 
-    fn gather(a: &Accel, c: u32, out: &mut Vec<SegmentAxis>) {
+    fn gather(a: &Accel, shapes: &[Shape], c: u32, out: &mut Vec<SegmentAxis>) {
         if c & LEAF != 0 {
             let first = c & ((1 << FIRST_BITS) - 1);
             let count = ((c >> FIRST_BITS) & 3) + 1;
             for k in first..first + count {
                 let p = a.prims[k as usize];
-                if p.shape & CURVE != 0 {
-                    out.push(a.fibres[p.index as usize]);
+                if let Geometry::Curves(curves) = &shapes[(p.shape & SHAPE) as usize].geometry {
+                    out.push(curves.segments[p.index as usize].axis(p.index));
                 }
             }
         } else {
             let n = &a.nodes[c as usize];
             for lane in 0..WIDTH {
                 if n.used >> lane & 1 != 0 {
-                    gather(a, n.child[lane], out);
+                    gather(a, shapes, n.child[lane], out);
                 }
             }
         }
@@ -1775,7 +1750,7 @@ mod oriented_estimate {
                     continue;
                 }
                 let mut segs = Vec::new();
-                gather(a, n.child[lane], &mut segs);
+                gather(a, &scene.shapes, n.child[lane], &mut segs);
                 if segs.is_empty() {
                     continue;
                 }

@@ -542,8 +542,9 @@ impl Segment {
 }
 
 /// A segment's axis (from `p0` along `v`) and larger radius: what the quick miss test reads,
-/// 32 bytes, so that a BVH can keep its fibre leaves' segments together in leaf order.
-/// `index` is the segment's own index in its [`Curves`].
+/// made from the segment when a leaf is tested (kept in leaf order it would cost 32 bytes a
+/// segment, half again what the fur's memory budget allows). `index` is the segment's own
+/// index in its [`Curves`].
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(32))]
 pub struct SegmentAxis {
@@ -569,6 +570,16 @@ impl Segments4 {
             v: [lanes(|s| s.v.x), lanes(|s| s.v.y), lanes(|s| s.v.z)],
             r: lanes(|s| s.r),
         }
+    }
+
+    /// [`Segments4::gather`] of the four segments' axes, read from the segments themselves
+    /// (the same values: `v` is `p1 - p0` lane by lane, the radius the larger one).
+    #[inline(always)]
+    pub fn of_segments(segs: [&Segment; 4]) -> Segments4 {
+        let lanes = |f: fn(&Segment) -> f32| Vec4::new(f(segs[0]), f(segs[1]), f(segs[2]), f(segs[3]));
+        let p0 = [lanes(|s| s.p0.x), lanes(|s| s.p0.y), lanes(|s| s.p0.z)];
+        let p1 = [lanes(|s| s.p1.x), lanes(|s| s.p1.y), lanes(|s| s.p1.z)];
+        Segments4 { p0, v: [p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]], r: lanes(|s| s.r0.max(s.r1)) }
     }
 }
 
