@@ -183,18 +183,31 @@ pub struct PixelSum {
 }
 
 impl PixelSum {
-    /// Adds one sample that lands in its own pixel with weight 1 (a box filter of radius
-    /// 0.5): the terms [`Accum::count_sample`] and [`Accum::splat`] add, so a pixel's samples
-    /// summed here and then added with [`Accum::add_pixel`] give the same bits.
+    /// Adds weight `w` and radiance `l`.
     #[inline]
-    pub fn add_own_sample(&mut self, l: Rgb) {
+    fn splat(&mut self, w: f32, l: Rgb) {
+        let w64 = w as f64;
+        self.rgb[0] = self.rgb[0].wrapping_add(to_fixed(w64 * l.x as f64));
+        self.rgb[1] = self.rgb[1].wrapping_add(to_fixed(w64 * l.y as f64));
+        self.rgb[2] = self.rgb[2].wrapping_add(to_fixed(w64 * l.z as f64));
+        self.weight = self.weight.wrapping_add(to_fixed(w64));
+    }
+
+    /// Counts one sample of radiance `l` generated in this pixel.
+    #[inline]
+    fn count_sample(&mut self, l: Rgb) {
         let lum = luminance(l) as f64;
         self.lum2 = self.lum2.wrapping_add(round_to_i128(lum * lum * (FIXED_BITS_LUM2 as f64).exp2()));
         self.count += 1;
-        for (sum, v) in self.rgb.iter_mut().zip([l.x, l.y, l.z]) {
-            *sum = sum.wrapping_add(to_fixed(v as f64));
-        }
-        self.weight = self.weight.wrapping_add(1 << FIXED_BITS);
+    }
+
+    /// Adds one sample that lands in its own pixel with weight 1 (a box filter of radius
+    /// 0.5), as [`Accum::count_sample`] and [`Accum::splat`] would: a pixel's samples summed
+    /// here and then added with [`Accum::add_pixel`] give the same bits.
+    #[inline]
+    pub fn add_own_sample(&mut self, l: Rgb) {
+        self.count_sample(l);
+        self.splat(1.0, l);
     }
 
     #[inline]
@@ -240,12 +253,7 @@ impl Accum {
     #[inline]
     pub fn splat(&mut self, x: u32, y: u32, w: f32, l: Rgb) {
         if let Some(i) = self.index(x, y) {
-            let p = &mut self.pixels[i];
-            let w64 = w as f64;
-            p.rgb[0] = p.rgb[0].wrapping_add(to_fixed(w64 * l.x as f64));
-            p.rgb[1] = p.rgb[1].wrapping_add(to_fixed(w64 * l.y as f64));
-            p.rgb[2] = p.rgb[2].wrapping_add(to_fixed(w64 * l.z as f64));
-            p.weight = p.weight.wrapping_add(to_fixed(w64));
+            self.pixels[i].splat(w, l);
         }
     }
 
@@ -253,10 +261,7 @@ impl Accum {
     #[inline]
     pub fn count_sample(&mut self, x: u32, y: u32, l: Rgb) {
         if let Some(i) = self.index(x, y) {
-            let lum = luminance(l) as f64;
-            let p = &mut self.pixels[i];
-            p.lum2 = p.lum2.wrapping_add(round_to_i128(lum * lum * (FIXED_BITS_LUM2 as f64).exp2()));
-            p.count += 1;
+            self.pixels[i].count_sample(l);
         }
     }
 

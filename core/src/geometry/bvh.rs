@@ -481,7 +481,7 @@ mod x86 {
 
 /// A box test as a type, so that traversal is compiled once per kernel.
 trait BoxTest {
-    /// Whether the kernel tests a leaf's triangles together ([`quad`]).
+    /// Whether the kernel tests a leaf's triangles together (`x86::quad_sse`, on x86-64).
     const QUADS: bool;
     /// # Safety
     /// The CPU must have the kernel's instructions.
@@ -513,31 +513,6 @@ impl BoxTest for AvxTest {
     #[inline(always)]
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         x86::test_avx2(node, r, tmin, tmax)
-    }
-}
-
-/// [`intersect_triangle`] on the `n` triangles of a [`LeafTris`] block, all against `tmax`: the
-/// lanes that hit (their values in `out`, written only if there are any), or `None` if a lane's
-/// ray passes exactly through an edge (which takes f64 arithmetic), or where there is no
-/// 4-lane test (kernels without [`BoxTest::QUADS`]).
-///
-/// # Safety
-/// On x86-64, `block` must be readable for `8 n + 4` floats.
-#[inline(always)]
-unsafe fn quad(
-    block: *const f32,
-    n: usize,
-    r: &TriRay,
-    tmin: f32,
-    tmax: f32,
-    out: &mut MaybeUninit<QuadHits>,
-) -> Option<u32> {
-    #[cfg(target_arch = "x86_64")]
-    return x86::quad_sse(block, n, r, tmin, tmax, out);
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        let _ = (block, n, r, tmin, tmax, out);
-        None
     }
 }
 
@@ -1035,7 +1010,7 @@ impl Accel {
             return 0;
         }
         let any = lanes[curves.trailing_zeros() as usize].unwrap_or_else(|| unreachable!());
-        missed_by4(q.ray.o, q.ray.d, &Segments4::of_segments(lanes.map(|s| s.unwrap_or(any)))) & curves
+        missed_by4(q.ray.o, q.ray.d, &Segments4::gather(lanes.map(|s| s.unwrap_or(any)))) & curves
     }
 
     /// The closest hit along `ray`, if any.
@@ -1091,12 +1066,18 @@ impl Accel {
                 // A leaf of triangles is tested together (x86 kernels), unless a lane's ray
                 // passes exactly through an edge; the lanes that hit are then taken in order,
                 // each against the closest hit so far, as the loop over primitives would.
+                #[cfg(target_arch = "x86_64")]
                 let quad = if T::QUADS && cur & TRI_LEAF != 0 {
                     let slot0 = self.prims.get_unchecked(first as usize).index as usize;
                     // SAFETY: the leaf's block, and at least three floats after it.
                     let block = self.tris.data.as_ptr().add(9 * slot0);
-                    quad(block, count as usize, &tri_ray, tmin, tmax, &mut hits)
+                    x86::quad_sse(block, count as usize, &tri_ray, tmin, tmax, &mut hits)
                 } else {
+                    None
+                };
+                #[cfg(not(target_arch = "x86_64"))]
+                let quad: Option<u32> = {
+                    let _ = (&tri_ray, &mut hits); // no 4-lane test here: one at a time
                     None
                 };
                 if let Some(mut mask) = quad {
@@ -1683,20 +1664,20 @@ mod tests {
 
 #[cfg(test)]
 mod oriented_estimate {
-    use super::super::curves::SegmentAxis;
     use super::*;
 
     /// Surface area of the box around `segs` (each a capsule-ish segment bounded by its
     /// larger radius) in the frame `(x, y, z)`.
-    fn area(segs: &[SegmentAxis], frame: [Vec3; 3]) -> f64 {
+    fn area(segs: &[Segment], frame: [Vec3; 3]) -> f64 {
         let mut lo = [f32::INFINITY; 3];
         let mut hi = [f32::NEG_INFINITY; 3];
         for s in segs {
-            for p in [s.p0, s.p0 + s.v] {
+            let r = s.r0.max(s.r1);
+            for p in [s.p0, s.p0 + (s.p1 - s.p0)] {
                 for a in 0..3 {
                     let x = frame[a].dot(p);
-                    lo[a] = lo[a].min(x - s.r);
-                    hi[a] = hi[a].max(x + s.r);
+                    lo[a] = lo[a].min(x - r);
+                    hi[a] = hi[a].max(x + r);
                 }
             }
         }
@@ -1704,22 +1685,23 @@ mod oriented_estimate {
         2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
     }
 
-    fn oriented(segs: &[SegmentAxis]) -> f64 {
-        let first = segs[0].v;
-        let z = segs.iter().fold(Vec3::ZERO, |acc, s| acc + if s.v.dot(first) < 0.0 { -s.v } else { s.v });
+    fn oriented(segs: &[Segment]) -> f64 {
+        let v = |s: &Segment| s.p1 - s.p0;
+        let first = v(&segs[0]);
+        let z = segs.iter().fold(Vec3::ZERO, |acc, s| acc + if v(s).dot(first) < 0.0 { -v(s) } else { v(s) });
         let z = z.normalize_or(Vec3::Z);
         let x = z.any_orthonormal_vector();
         area(segs, [x, z.cross(x), z])
     }
 
-    fn gather(a: &Accel, shapes: &[Shape], c: u32, out: &mut Vec<SegmentAxis>) {
+    fn gather(a: &Accel, shapes: &[Shape], c: u32, out: &mut Vec<Segment>) {
         if c & LEAF != 0 {
             let first = c & ((1 << FIRST_BITS) - 1);
             let count = ((c >> FIRST_BITS) & 3) + 1;
             for k in first..first + count {
                 let p = a.prims[k as usize];
                 if let Geometry::Curves(curves) = &shapes[(p.shape & SHAPE) as usize].geometry {
-                    out.push(curves.segments[p.index as usize].axis(p.index));
+                    out.push(curves.segments[p.index as usize]);
                 }
             }
         } else {

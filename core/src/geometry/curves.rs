@@ -520,13 +520,7 @@ impl Segment {
     /// than its larger radius ([`missed_by4`] for this segment alone).
     #[inline]
     pub fn missed_by(&self, o: Vec3, d: Vec3) -> bool {
-        let axis = self.axis(0);
-        missed_by4(o, d, &Segments4::gather([&axis; 4])) & 1 != 0
-    }
-
-    /// The segment's axis and larger radius, as [`missed_by4`] reads them; `index` names it.
-    pub fn axis(&self, index: u32) -> SegmentAxis {
-        SegmentAxis { p0: self.p0, v: self.p1 - self.p0, r: self.r0.max(self.r1), index }
+        missed_by4(o, d, &Segments4::gather([self; 4])) & 1 != 0
     }
 
     /// Point on the surface for a hit, its error bound, and uv (u along the curve).
@@ -541,19 +535,6 @@ impl Segment {
     }
 }
 
-/// A segment's axis (from `p0` along `v`) and larger radius: what the quick miss test reads,
-/// made from the segment when a leaf is tested (kept in leaf order it would cost 32 bytes a
-/// segment, half again what the fur's memory budget allows). `index` is the segment's own
-/// index in its [`Curves`].
-#[derive(Clone, Copy, Debug)]
-#[repr(C, align(32))]
-pub struct SegmentAxis {
-    pub p0: Vec3,
-    pub v: Vec3,
-    pub r: f32,
-    pub index: u32,
-}
-
 /// Four segments' axes and larger radii, one segment a lane, for [`missed_by4`].
 pub struct Segments4 {
     p0: [Vec4; 3],
@@ -562,20 +543,11 @@ pub struct Segments4 {
 }
 
 impl Segments4 {
+    /// The four segments' axes (`v` is `p1 - p0`) and larger radii, read from the segments
+    /// themselves: a BVH's fibre leaves keep no copy of them (32 bytes a segment would be half
+    /// again what the fur's memory budget allows).
     #[inline(always)]
-    pub fn gather(segs: [&SegmentAxis; 4]) -> Segments4 {
-        let lanes = |f: fn(&SegmentAxis) -> f32| Vec4::new(f(segs[0]), f(segs[1]), f(segs[2]), f(segs[3]));
-        Segments4 {
-            p0: [lanes(|s| s.p0.x), lanes(|s| s.p0.y), lanes(|s| s.p0.z)],
-            v: [lanes(|s| s.v.x), lanes(|s| s.v.y), lanes(|s| s.v.z)],
-            r: lanes(|s| s.r),
-        }
-    }
-
-    /// [`Segments4::gather`] of the four segments' axes, read from the segments themselves
-    /// (the same values: `v` is `p1 - p0` lane by lane, the radius the larger one).
-    #[inline(always)]
-    pub fn of_segments(segs: [&Segment; 4]) -> Segments4 {
+    pub fn gather(segs: [&Segment; 4]) -> Segments4 {
         let lanes = |f: fn(&Segment) -> f32| Vec4::new(f(segs[0]), f(segs[1]), f(segs[2]), f(segs[3]));
         let p0 = [lanes(|s| s.p0.x), lanes(|s| s.p0.y), lanes(|s| s.p0.z)];
         let p1 = [lanes(|s| s.p1.x), lanes(|s| s.p1.y), lanes(|s| s.p1.z)];
@@ -745,8 +717,8 @@ mod tests {
             let quick = c.segments[0].missed_by(o, d);
             // Lane by lane, the same answer whatever the other lanes hold.
             let other = Curves::linear(&[vec![(o + d, 0.1), (o + d * 2.0, 0.1)]]);
-            let (a, b) = (other.segments[0].axis(0), c.segments[0].axis(0));
-            let lanes = missed_by4(o, d, &Segments4::gather([&a, &b, &a, &b]));
+            let (a, b) = (&other.segments[0], &c.segments[0]);
+            let lanes = missed_by4(o, d, &Segments4::gather([a, b, a, b]));
             assert_eq!((lanes >> 1 & 1, lanes >> 3 & 1), (quick as u32, quick as u32));
             assert_eq!(lanes & 0b101, 0, "a segment on the ray is never missed");
             hits += hit.is_some() as u32;
