@@ -15,6 +15,7 @@ pub mod plan;
 pub mod render;
 pub mod sampler;
 pub mod scene;
+pub mod simd;
 pub mod testing;
 pub mod texture;
 

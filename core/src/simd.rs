@@ -1,0 +1,388 @@
+//! Four f32 lanes ([`F4`]) and four i32 lanes ([`I4`]): SSE2 on x86-64 (every x86-64 CPU has
+//! it, so no dispatch), plain arrays elsewhere. Only the operations the renderer's four-lane
+//! code needs; each lane computes exactly what the scalar IEEE operation computes, so both
+//! paths give the same bits. [`F4::exp`] and [`F4::ln`] are written once, on these operations.
+
+use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Sub};
+
+#[cfg(target_arch = "x86_64")]
+use std::arch::x86_64::*;
+
+/// Four f32 lanes.
+#[derive(Clone, Copy, Debug)]
+pub struct F4(#[cfg(target_arch = "x86_64")] __m128, #[cfg(not(target_arch = "x86_64"))] [f32; 4]);
+
+/// Four i32 lanes; also a lane mask (all ones or all zeros) from [`F4`]'s comparisons.
+#[derive(Clone, Copy, Debug)]
+pub struct I4(#[cfg(target_arch = "x86_64")] __m128i, #[cfg(not(target_arch = "x86_64"))] [i32; 4]);
+
+#[cfg(target_arch = "x86_64")]
+// SAFETY (every `unsafe` below): SSE and SSE2 are part of x86-64 itself, so every x86-64 CPU
+// runs these intrinsics; the compiler asks for `unsafe` only because they carry
+// `#[target_feature]`.
+mod imp {
+    use super::*;
+
+    impl F4 {
+        #[inline(always)]
+        pub fn new(a: [f32; 4]) -> F4 {
+            F4(unsafe { _mm_setr_ps(a[0], a[1], a[2], a[3]) })
+        }
+        #[inline(always)]
+        pub fn splat(x: f32) -> F4 {
+            F4(unsafe { _mm_set1_ps(x) })
+        }
+        #[inline(always)]
+        pub fn to_array(self) -> [f32; 4] {
+            let mut a = [0.0; 4];
+            // `a` holds four f32.
+            unsafe { _mm_storeu_ps(a.as_mut_ptr(), self.0) };
+            a
+        }
+        #[inline(always)]
+        pub fn sqrt(self) -> F4 {
+            F4(unsafe { _mm_sqrt_ps(self.0) })
+        }
+        /// `a < b ? a : b` per lane (a NaN in either gives `b`).
+        #[inline(always)]
+        pub fn min(self, b: F4) -> F4 {
+            F4(unsafe { _mm_min_ps(self.0, b.0) })
+        }
+        /// `a > b ? a : b` per lane (a NaN in either gives `b`).
+        #[inline(always)]
+        pub fn max(self, b: F4) -> F4 {
+            F4(unsafe { _mm_max_ps(self.0, b.0) })
+        }
+        #[inline(always)]
+        pub fn lt(self, b: F4) -> I4 {
+            I4(unsafe { _mm_castps_si128(_mm_cmplt_ps(self.0, b.0)) })
+        }
+        #[inline(always)]
+        pub fn le(self, b: F4) -> I4 {
+            I4(unsafe { _mm_castps_si128(_mm_cmple_ps(self.0, b.0)) })
+        }
+        #[inline(always)]
+        pub fn eq(self, b: F4) -> I4 {
+            I4(unsafe { _mm_castps_si128(_mm_cmpeq_ps(self.0, b.0)) })
+        }
+        /// The lanes' bits.
+        #[inline(always)]
+        pub fn bits(self) -> I4 {
+            I4(unsafe { _mm_castps_si128(self.0) })
+        }
+        /// Truncated toward zero (lanes past i32's range give i32::MIN).
+        #[inline(always)]
+        pub fn trunc_i4(self) -> I4 {
+            I4(unsafe { _mm_cvttps_epi32(self.0) })
+        }
+    }
+
+    impl I4 {
+        #[inline(always)]
+        pub fn splat(x: i32) -> I4 {
+            I4(unsafe { _mm_set1_epi32(x) })
+        }
+        #[inline(always)]
+        pub fn from_bits(self) -> F4 {
+            F4(unsafe { _mm_castsi128_ps(self.0) })
+        }
+        #[inline(always)]
+        pub fn to_f4(self) -> F4 {
+            F4(unsafe { _mm_cvtepi32_ps(self.0) })
+        }
+        #[inline(always)]
+        pub fn shl<const N: i32>(self) -> I4 {
+            I4(unsafe { _mm_slli_epi32::<N>(self.0) })
+        }
+        #[inline(always)]
+        pub fn shr<const N: i32>(self) -> I4 {
+            I4(unsafe { _mm_srli_epi32::<N>(self.0) })
+        }
+        /// Per lane, `a` where the mask `self` is set, else `b`.
+        #[inline(always)]
+        pub fn select(self, a: F4, b: F4) -> F4 {
+            unsafe {
+                let m = _mm_castsi128_ps(self.0);
+                F4(_mm_or_ps(_mm_and_ps(m, a.0), _mm_andnot_ps(m, b.0)))
+            }
+        }
+    }
+
+    macro_rules! f4_op {
+        ($t:ident, $f:ident, $i:ident) => {
+            impl $t for F4 {
+                type Output = F4;
+                #[inline(always)]
+                fn $f(self, b: F4) -> F4 {
+                    F4(unsafe { $i(self.0, b.0) })
+                }
+            }
+        };
+    }
+    f4_op!(Add, add, _mm_add_ps);
+    f4_op!(Sub, sub, _mm_sub_ps);
+    f4_op!(Mul, mul, _mm_mul_ps);
+    f4_op!(Div, div, _mm_div_ps);
+
+    macro_rules! i4_op {
+        ($t:ident, $f:ident, $i:ident) => {
+            impl $t for I4 {
+                type Output = I4;
+                #[inline(always)]
+                fn $f(self, b: I4) -> I4 {
+                    I4(unsafe { $i(self.0, b.0) })
+                }
+            }
+        };
+    }
+    i4_op!(Add, add, _mm_add_epi32);
+    i4_op!(Sub, sub, _mm_sub_epi32);
+    i4_op!(BitAnd, bitand, _mm_and_si128);
+    i4_op!(BitOr, bitor, _mm_or_si128);
+    i4_op!(BitXor, bitxor, _mm_xor_si128);
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+mod imp {
+    use super::*;
+
+    impl F4 {
+        #[inline(always)]
+        pub fn new(a: [f32; 4]) -> F4 {
+            F4(a)
+        }
+        #[inline(always)]
+        pub fn splat(x: f32) -> F4 {
+            F4([x; 4])
+        }
+        #[inline(always)]
+        pub fn to_array(self) -> [f32; 4] {
+            self.0
+        }
+        #[inline(always)]
+        pub fn sqrt(self) -> F4 {
+            F4(self.0.map(f32::sqrt))
+        }
+        #[inline(always)]
+        pub fn min(self, b: F4) -> F4 {
+            F4(std::array::from_fn(|i| if self.0[i] < b.0[i] { self.0[i] } else { b.0[i] }))
+        }
+        #[inline(always)]
+        pub fn max(self, b: F4) -> F4 {
+            F4(std::array::from_fn(|i| if self.0[i] > b.0[i] { self.0[i] } else { b.0[i] }))
+        }
+        #[inline(always)]
+        pub fn lt(self, b: F4) -> I4 {
+            I4(std::array::from_fn(|i| -((self.0[i] < b.0[i]) as i32)))
+        }
+        #[inline(always)]
+        pub fn le(self, b: F4) -> I4 {
+            I4(std::array::from_fn(|i| -((self.0[i] <= b.0[i]) as i32)))
+        }
+        #[inline(always)]
+        pub fn eq(self, b: F4) -> I4 {
+            I4(std::array::from_fn(|i| -((self.0[i] == b.0[i]) as i32)))
+        }
+        #[inline(always)]
+        pub fn bits(self) -> I4 {
+            I4(self.0.map(|x| x.to_bits() as i32))
+        }
+        #[inline(always)]
+        pub fn trunc_i4(self) -> I4 {
+            I4(self.0.map(|x| if x.abs() < 2_147_483_648.0 { x as i32 } else { i32::MIN }))
+        }
+    }
+
+    impl I4 {
+        #[inline(always)]
+        pub fn splat(x: i32) -> I4 {
+            I4([x; 4])
+        }
+        #[inline(always)]
+        pub fn from_bits(self) -> F4 {
+            F4(self.0.map(|x| f32::from_bits(x as u32)))
+        }
+        #[inline(always)]
+        pub fn to_f4(self) -> F4 {
+            F4(self.0.map(|x| x as f32))
+        }
+        #[inline(always)]
+        pub fn shl<const N: i32>(self) -> I4 {
+            I4(self.0.map(|x| ((x as u32) << N) as i32))
+        }
+        #[inline(always)]
+        pub fn shr<const N: i32>(self) -> I4 {
+            I4(self.0.map(|x| ((x as u32) >> N) as i32))
+        }
+        #[inline(always)]
+        pub fn select(self, a: F4, b: F4) -> F4 {
+            F4(std::array::from_fn(|i| if self.0[i] != 0 { a.0[i] } else { b.0[i] }))
+        }
+    }
+
+    macro_rules! op {
+        ($s:ident, $e:ty, $t:ident, $f:ident, $g:expr) => {
+            impl $t for $s {
+                type Output = $s;
+                #[inline(always)]
+                fn $f(self, b: $s) -> $s {
+                    let g: fn($e, $e) -> $e = $g;
+                    $s(std::array::from_fn(|i| g(self.0[i], b.0[i])))
+                }
+            }
+        };
+    }
+    op!(F4, f32, Add, add, |a, b| a + b);
+    op!(F4, f32, Sub, sub, |a, b| a - b);
+    op!(F4, f32, Mul, mul, |a, b| a * b);
+    op!(F4, f32, Div, div, |a, b| a / b);
+    op!(I4, i32, Add, add, |a, b| a.wrapping_add(b));
+    op!(I4, i32, Sub, sub, |a, b| a.wrapping_sub(b));
+    op!(I4, i32, BitAnd, bitand, |a, b| a & b);
+    op!(I4, i32, BitOr, bitor, |a, b| a | b);
+    op!(I4, i32, BitXor, bitxor, |a, b| a ^ b);
+}
+
+impl Neg for F4 {
+    type Output = F4;
+    #[inline(always)]
+    fn neg(self) -> F4 {
+        (self.bits() ^ I4::splat(i32::MIN)).from_bits()
+    }
+}
+
+impl F4 {
+    /// |x| per lane.
+    #[inline(always)]
+    pub fn abs(self) -> F4 {
+        (self.bits() & I4::splat(i32::MAX)).from_bits()
+    }
+
+    /// Rounded down, per lane, as [`crate::math::floor`] (the sign of a zero kept; from 2^23
+    /// on every f32 is whole and is kept).
+    #[inline(always)]
+    pub fn floor(self) -> F4 {
+        let t = self.trunc_i4().to_f4();
+        let down = self.lt(t).select(t - F4::splat(1.0), t);
+        let down = (down.abs().bits() | (self.bits() & I4::splat(i32::MIN))).from_bits();
+        self.abs().lt(F4::splat(8_388_608.0)).select(down, self)
+    }
+
+    /// e^x per lane, within 1e-7 relative (`exp_and_ln_are_the_librarys`): e^x = 2^n e^r with n =
+    /// x log2(e) rounded (by the 1.5 * 2^23 trick, exact in this range) and r = x - n ln 2 in
+    /// two parts (Cody and Waite), e^r by a degree-7 minimax polynomial on |r| <= ln(2) / 2, and
+    /// 2^n built in the exponent bits. Below -87 (where f32 turns subnormal) it gives 0, above
+    /// 88 e^88 (1.65e38) rather than infinity; NaN gives NaN.
+    #[inline(always)]
+    pub fn exp(self) -> F4 {
+        let s = F4::splat;
+        let round = s(12_582_912.0); // 1.5 * 2^23
+        let x = self.max(s(-87.0)).min(s(88.0)); // NaN becomes 88 here; restored below
+        let n = (x * s(std::f32::consts::LOG2_E) + round) - round;
+        let r = (x - n * s(0.693_359_4)) - n * s(-2.121_944_4e-4);
+        let mut p = s(1.987_569_1e-4);
+        for c in [1.398_199_9e-3, 8.333_452e-3, 4.166_579_6e-2, 0.166_666_65, 0.5] {
+            p = p * r + s(c);
+        }
+        let e = p * (r * r) + r + s(1.0);
+        let scale = (n.trunc_i4() + I4::splat(127)).shl::<23>().from_bits();
+        let v = self.lt(s(-87.0)).select(s(0.0), e * scale);
+        self.eq(self).select(v, self)
+    }
+
+    /// ln x per lane, within 1e-7 (relative, or absolute near x = 1) for positive normal x:
+    /// x = 2^e m with m in [sqrt(1/2), sqrt(2)), ln m = f - f^2 / 2 + f^3 P(f) for f = m - 1 (a
+    /// degree-8 minimax polynomial), and e ln 2 added in two parts. 0 gives -infinity, a
+    /// negative number or NaN gives NaN, infinity gives infinity; subnormals are not handled
+    /// (they read as about 2^-127 times their mantissa).
+    #[inline(always)]
+    pub fn ln(self) -> F4 {
+        let s = F4::splat;
+        let bits = self.bits();
+        let m = ((bits & I4::splat(0x007f_ffff)) | I4::splat(0x3f80_0000)).from_bits();
+        let e = (bits.shr::<23>() & I4::splat(0xff)).to_f4() - s(127.0);
+        let big = s(std::f32::consts::SQRT_2).lt(m);
+        let m = big.select(m * s(0.5), m);
+        let e = big.select(e + s(1.0), e);
+        let f = m - s(1.0);
+        let z = f * f;
+        let mut p = s(7.037_683_6e-2);
+        for c in [
+            -0.115_146_1,
+            0.116_769_98,
+            -0.124_201_41,
+            0.142_493_23,
+            -0.166_680_58,
+            0.200_007_15,
+            -0.249_999_94,
+            0.333_333_3,
+        ] {
+            p = p * f + s(c);
+        }
+        let y = f * z * p + e * s(-2.121_944_4e-4) - s(0.5) * z;
+        let v = f + y + e * s(0.693_359_4);
+        let v = self.eq(s(f32::INFINITY)).select(self, v);
+        let v = s(0.0).lt(self).select(v, s(f32::NAN));
+        self.eq(s(0.0)).select(s(f32::NEG_INFINITY), v)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// exp and ln against f64's, over their whole range: within 1e-7 (8.1e-8 and 7.9e-8
+    /// measured), and their edge values, in every lane.
+    #[test]
+    fn exp_and_ln_are_the_librarys() {
+        let exp = |x: f32| F4::new([x, 0.0, x, 1.0]).exp().to_array()[2];
+        let ln = |x: f32| F4::new([1.0, x, 2.0, x]).ln().to_array()[3];
+        let mut worst = (0.0f64, 0.0f64);
+        let mut x = -87.0f32;
+        while x < 88.0 {
+            worst.0 = worst.0.max((exp(x) as f64 / (x as f64).exp() - 1.0).abs());
+            x += 0.000_37;
+        }
+        let mut x = f32::MIN_POSITIVE;
+        while x < 1e38 {
+            let (got, want) = (ln(x) as f64, (x as f64).ln());
+            worst.1 = worst.1.max((got - want).abs() / want.abs().max(1.0));
+            x *= 1.000_173;
+        }
+        for k in 0..100_000 {
+            let x = 0.5 + k as f32 * 1e-5; // around 1, where ln is near 0
+            let (got, want) = (ln(x) as f64, (x as f64).ln());
+            worst.1 = worst.1.max((got - want).abs() / want.abs().max(x as f64 * 1e-7));
+        }
+        assert!(worst.0 < 1e-7 && worst.1 < 1e-7, "exp {:e}, ln {:e}", worst.0, worst.1);
+        let all = |v: F4, f: fn(f32) -> bool| v.to_array().into_iter().all(f);
+        assert!(all(F4::splat(0.0).exp(), |v| v == 1.0));
+        assert!(all(F4::splat(-100.0).exp(), |v| v == 0.0));
+        assert!(all(F4::splat(100.0).exp(), |v| v.is_finite() && v > 1e38));
+        assert!(all(F4::splat(f32::NAN).exp(), f32::is_nan));
+        assert!(all(F4::splat(1.0).ln(), |v| v == 0.0));
+        assert!(all(F4::splat(0.0).ln(), |v| v == f32::NEG_INFINITY));
+        assert!(all(F4::splat(-1.0).ln(), f32::is_nan));
+        assert!(all(F4::splat(f32::NAN).ln(), f32::is_nan));
+        assert!(all(F4::splat(f32::INFINITY).ln(), |v| v == f32::INFINITY));
+    }
+
+    /// floor, abs, min, max, select and negation lane by lane against the scalar operations.
+    #[test]
+    fn lanes_follow_the_scalar_operations() {
+        let xs = [-2.5f32, -0.0, 0.3, 1.0, -1.0, 7.9, -8_388_609.0, 1e30, -1e-40, 3.5e6];
+        for w in xs.windows(4) {
+            let (a, b) = (F4::new([w[0], w[1], w[2], w[3]]), F4::new([w[3], w[2], w[1], w[0]]));
+            let (fa, fb) = (a.to_array(), b.to_array());
+            for i in 0..4 {
+                assert_eq!(a.floor().to_array()[i].to_bits(), crate::math::floor(fa[i]).to_bits());
+                assert_eq!(a.abs().to_array()[i], fa[i].abs());
+                assert_eq!((-a).to_array()[i].to_bits(), (-fa[i]).to_bits());
+                assert_eq!(a.min(b).to_array()[i], if fa[i] < fb[i] { fa[i] } else { fb[i] });
+                assert_eq!(a.max(b).to_array()[i], if fa[i] > fb[i] { fa[i] } else { fb[i] });
+                let sel = a.le(b).select(a, b).to_array()[i];
+                assert_eq!(sel, if fa[i] <= fb[i] { fa[i] } else { fb[i] });
+            }
+        }
+    }
+}
