@@ -165,11 +165,11 @@ impl EnvMap {
         let mut levels = 0;
         let (mut lw, mut lh) = (nu.div_ceil(2), nv.div_ceil(2));
         loop {
-            levels += 4 * (lw + (lw & 1)) * (lh + (lh & 1));
+            levels += 64 * lw.div_ceil(4) * lh.div_ceil(4);
             if lw == 1 && lh == 1 {
                 break;
             }
-            (lw, lh) = (lw.div_ceil(2), lh.div_ceil(2));
+            (lw, lh) = (lw.div_ceil(4), lh.div_ceil(4));
         }
         let (grid, corners) = match filter {
             FilterType::Nearest => (4 * w * h, 4 * w * h + 4 * (nv + 1)),
@@ -304,40 +304,44 @@ struct Warp {
     nu: usize,
     nv: usize,
     corners: Corners,
-    /// levels[0] sums 2 x 2 blocks of cell means, levels[l + 1] 2 x 2 blocks of levels[l]; the
-    /// last is the root, 1 x 1. Blocks past the grid's edge count zero.
+    /// levels[0] holds the sums of 2 x 2 blocks of cell means, levels[l + 1] the sums of 4 x 4
+    /// blocks of levels[l]'s entries; the last is the root, 1 x 1. Entries past the grid's
+    /// edge count zero.
     levels: Vec<Level>,
     /// Sum of the cell means (the integral over the square, times nu nv), in f64.
     total: f64,
 }
 
-/// One level of the warp's tree. Its width and height are even (padded with zeros), so that
-/// the four children of any node of the level above are in it; they are stored together, in
-/// the order [`Level::block`] returns them, so that a step of the descent reads one 16-byte
-/// block.
+/// One level of the warp's tree: its entries in blocks of 4 x 4 (padded with zeros), each
+/// block the children of one entry of the level above, stored together (row by row) so that
+/// a step of the descent reads one 64-byte block.
 #[derive(Clone, Debug)]
 struct Level {
-    /// Blocks per row (half the padded width).
+    /// Blocks per row (a quarter of the padded width).
     bw: usize,
-    blocks: Vec<[f32; 4]>,
+    blocks: Vec<Block>,
 }
+
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Block([f32; 16]);
 
 impl Level {
     fn zeros(w: usize, h: usize) -> Level {
-        let (bw, bh) = (w.div_ceil(2), h.div_ceil(2));
-        Level { bw, blocks: vec![[0.0; 4]; bw * bh] }
+        let (bw, bh) = (w.div_ceil(4), h.div_ceil(4));
+        Level { bw, blocks: vec![Block([0.0; 16]); bw * bh] }
     }
 
     /// The entry at (i, k).
     #[inline]
     fn at(&mut self, i: usize, k: usize) -> &mut f32 {
-        &mut self.blocks[k / 2 * self.bw + i / 2][(i & 1) + 2 * (k & 1)]
+        &mut self.blocks[k / 4 * self.bw + i / 4].0[(k % 4) * 4 + i % 4]
     }
 
-    /// The 2 x 2 block at (2x, 2y): [(0, 0), (1, 0), (0, 1), (1, 1)].
+    /// The 4 x 4 block at (4x, 4y), row by row.
     #[inline]
-    fn block(&self, x: usize, y: usize) -> [f32; 4] {
-        self.blocks[y * self.bw + x]
+    fn block(&self, x: usize, y: usize) -> &[f32; 16] {
+        &self.blocks[y * self.bw + x].0
     }
 }
 
@@ -355,16 +359,16 @@ impl Warp {
             }
         }
         while w > 1 || h > 1 {
-            let mut next = Level::zeros(w.div_ceil(2), h.div_ceil(2));
+            let mut next = Level::zeros(w.div_ceil(4), h.div_ceil(4));
             for k in 0..h {
                 for i in 0..w {
                     let v = *cur.at(i, k);
-                    *next.at(i / 2, k / 2) += v;
+                    *next.at(i / 4, k / 4) += v;
                 }
             }
             warp.levels.push(cur);
             cur = next;
-            (w, h) = (w.div_ceil(2), h.div_ceil(2));
+            (w, h) = (w.div_ceil(4), h.div_ceil(4));
         }
         warp.levels.push(cur);
         warp
@@ -387,7 +391,7 @@ impl Warp {
         }
     }
 
-    /// [`Warp::corners`] of the 2 x 2 cells at (i, k), in [`Level::block`]'s order; cells
+    /// [`Warp::corners`] of the 2 x 2 cells at (i, k), in the order [(0, 0), (1, 0), (0, 1), (1, 1)]; cells
     /// past the grid's edge are zero (as [`Warp::cell_mean`] counts them). Shared vertices are
     /// read once.
     #[inline]
@@ -433,8 +437,8 @@ impl Warp {
         let (mut ux, mut uy) = (ux.clamp(0.0, ONE_BELOW), uy.clamp(0.0, ONE_BELOW));
         let (mut x, mut y) = (0usize, 0usize);
         for lev in self.levels[..self.levels.len() - 1].iter().rev() {
-            let (dx, dy) = choose(lev.block(x, y), &mut ux, &mut uy)?;
-            (x, y) = (2 * x + dx, 2 * y + dy);
+            let (dx, dy) = choose16(lev.block(x, y), &mut ux, &mut uy)?;
+            (x, y) = (4 * x + dx, 4 * y + dy);
         }
         let (i, k) = (2 * x, 2 * y);
         let quad = self.corners_2x2(i, k);
@@ -487,6 +491,38 @@ fn in_cell(c: usize, f: f64, n: usize) -> f32 {
         }
     }
     x
+}
+
+/// Chooses one of a 4 x 4 block (row by row): the column by the column sums with `ux`, then
+/// the row within it with `uy`, each rescaled to be uniform again (see [`pick4`]). `None` if
+/// the block is empty. Half the steps of a 2 x 2 descent, with the same two divisions a step:
+/// the descent is a serial chain of them.
+#[inline]
+fn choose16(b: &[f32; 16], ux: &mut f64, uy: &mut f64) -> Option<(usize, usize)> {
+    // Column sums in f32: the entries are non-negative, so a column sums to 0 only if it is
+    // empty.
+    let col = std::array::from_fn(|j| ((b[j] + b[4 + j]) + (b[8 + j] + b[12 + j])) as f64);
+    let (dx, x) = pick4(col, *ux)?;
+    let (dy, y) = pick4(std::array::from_fn(|r| b[4 * r + dx] as f64), *uy)?;
+    (*ux, *uy) = (x, y);
+    Some((dx, dy))
+}
+
+/// One of four non-negative weights chosen with `u` in [0, 1): the `k` whose share of their
+/// sum holds `u * sum`, and where in that share, rescaled to [0, 1). Never a weight of 0, even
+/// when `u * sum` rounds up to the sum. `None` if they sum to 0 or overflow.
+#[inline(always)]
+fn pick4(w: [f64; 4], u: f64) -> Option<(usize, f64)> {
+    let p = [0.0, w[0], w[0] + w[1], w[0] + w[1] + w[2], w[0] + w[1] + w[2] + w[3]];
+    let sum = p[4];
+    if !(sum > 0.0 && sum < f64::INFINITY) {
+        return None;
+    }
+    let x = u * sum;
+    // Past boundary m only if some weight lies beyond it: the last such m has p[m] <= x and,
+    // unless x rounded up to the sum, x < p[m + 1].
+    let k = (1..4).map(|m| (x >= p[m] && sum > p[m]) as usize).sum::<usize>();
+    Some((k, ((x - p[k]) / (p[k + 1] - p[k])).clamp(0.0, ONE_BELOW)))
 }
 
 /// Chooses one of a 2 x 2 block by its values [(0, 0), (1, 0), (0, 1), (1, 1)]: the column by
@@ -844,6 +880,45 @@ mod tests {
             }
             assert!(near > 0);
         }
+    }
+
+    /// pick4 takes each weight in proportion, never one of 0 (also when u * sum rounds up to
+    /// the sum), and leaves the remainder uniform in [0, 1).
+    #[test]
+    fn pick4_follows_the_weights_and_skips_zeros() {
+        let cases: [[f64; 4]; 6] = [
+            [1.0, 2.0, 3.0, 4.0],
+            [0.0, 1.0, 0.0, 1.0],
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 3.0],
+            [1e-30, 1.0, 0.0, 1e-30],
+            [0.1, 0.2, 0.3, 0.0],
+        ];
+        let n = 100_000;
+        for w in cases {
+            let sum: f64 = w.iter().sum();
+            let mut count = [0usize; 4];
+            let mut rest = [0.0f64; 4];
+            for i in 0..=n {
+                let u = if i == n { ONE_BELOW } else { (i as f64 + 0.5) / n as f64 };
+                let (k, r) = pick4(w, u).unwrap();
+                assert!(w[k] > 0.0, "{w:?}, u {u}: chose an empty weight");
+                assert!((0.0..1.0).contains(&r), "{w:?}, u {u}: remainder {r}");
+                if i < n {
+                    count[k] += 1;
+                    rest[k] += r;
+                }
+            }
+            for k in 0..4 {
+                let want = w[k] / sum * n as f64;
+                assert!((count[k] as f64 - want).abs() <= 1.0, "{w:?}: {count:?}");
+                if count[k] > 100 {
+                    assert!((rest[k] / count[k] as f64 - 0.5).abs() < 1e-3, "{w:?}: remainders {rest:?}");
+                }
+            }
+        }
+        assert!(pick4([0.0; 4], 0.5).is_none());
+        assert!(pick4([f64::INFINITY, 1.0, 0.0, 0.0], 0.5).is_none());
     }
 
     #[test]
