@@ -151,7 +151,7 @@ pub fn li(
             st.light_samples[light.kind() as usize] += 1;
             let spare = || choices.get(s)[3];
             if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare) {
-                if ls.pdf > 0.0 && ls.li != Rgb::ZERO {
+                if ls.pdf > 0.0 && !ls.is_black() {
                     let wi = it.frame.to_local(ls.wi);
                     let (f, bsdf_pdf) = bsdf.eval_and_pdf(tc, wo, wi);
                     if f != Rgb::ZERO {
@@ -167,7 +167,7 @@ pub fn li(
                             } else {
                                 mis_power(light_pdf, bsdf_pdf.unwrap_or_else(|| bsdf.pdf(tc, wo, wi)))
                             };
-                            l += beta * f * ls.li * (w / light_pdf);
+                            l += beta * f * ls.li(light) * (w / light_pdf);
                         }
                     }
                 }

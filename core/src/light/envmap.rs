@@ -264,14 +264,22 @@ impl EnvMap {
     /// A world direction towards the environment, the radiance arriving along it and its
     /// solid-angle pdf.
     pub fn sample(&self, u: Vec2) -> Option<(Vec3, Rgb, f32)> {
+        let (d, uv, pdf) = self.sample_direction(u)?;
+        Some((d, self.radiance_at(uv), pdf))
+    }
+
+    /// [`EnvMap::sample`] without the radiance: the direction, the point (u, v) where
+    /// [`EnvMap::radiance_at`] gives its radiance, and the pdf. Light sampling looks the
+    /// radiance up only once the shadow ray is clear.
+    pub fn sample_direction(&self, u: Vec2) -> Option<(Vec3, Vec2, f32)> {
         if self.warp.total <= 0.0 {
             return None;
         }
         if self.uniform {
             let d = square_to_uniform_sphere(u);
-            return Some((d, self.eval(d), INV_FOUR_PI));
+            return Some((d, self.uv(d).0, INV_FOUR_PI));
         }
-        let (us, v) = self.warp.sample(u.x as f64, u.y as f64)?;
+        let (us, v, cell) = self.warp.sample(u.x as f64, u.y as f64)?;
         let mut uu = us + self.u_shift;
         if uu >= 1.0 {
             uu -= 1.0;
@@ -280,10 +288,24 @@ impl EnvMap {
         let (sin_t, cos_t) = sin_cos_2pi(0.5 * v);
         let l = Vec3::new(sin_t * sin_p, cos_t, -sin_t * cos_p);
         let d = (self.to_world * l).normalize();
-        // Radiance and pdf at the same (f32) point, so that they agree on the texel.
+        // Radiance and pdf at the same (f32) point, so that they agree on the texel: the pdf
+        // as `pdf_at` gives it there, from the sampled cell's corners where it is that cell.
         let uv = Vec2::new(uu, v);
-        let pdf = self.pdf_at(uv, sin_t as f64);
-        (pdf > 0.0).then(|| (d, self.lookup(uv), pdf))
+        if !(sin_t > 0.0) {
+            return None;
+        }
+        let mut us = uv.x - self.u_shift;
+        if us < 0.0 {
+            us += 1.0;
+        }
+        let pdf = (self.warp.pdf_near(us, uv.y, cell) / (2.0 * PI64 * PI64 * sin_t as f64)) as f32;
+        (pdf > 0.0).then_some((d, uv, pdf))
+    }
+
+    /// The radiance at (u, v) of [`EnvMap::sample_direction`].
+    #[inline]
+    pub fn radiance_at(&self, uv: Vec2) -> Rgb {
+        self.lookup(uv)
     }
 }
 
@@ -429,8 +451,9 @@ impl Warp {
         0.25 * (c[0] + c[1] + c[2] + c[3])
     }
 
-    /// A point (u, v) of the unit square, distributed by the density.
-    fn sample(&self, ux: f64, uy: f64) -> Option<(f32, f32)> {
+    /// A point (u, v) of the unit square, distributed by the density, and its cell with the
+    /// cell's corners.
+    fn sample(&self, ux: f64, uy: f64) -> Option<(f32, f32, Cell)> {
         if !(self.total > 0.0) {
             return None;
         }
@@ -450,11 +473,19 @@ impl Warp {
         if !(fx.is_finite() && fy.is_finite()) {
             return None;
         }
-        Some((in_cell(x, fx, self.nu), in_cell(y, fy, self.nv)))
+        let corners = quad[dx + 2 * dy];
+        Some((in_cell(x, fx, self.nu), in_cell(y, fy, self.nv), Cell { i: x, k: y, corners }))
     }
 
     /// Density at (u, v) in the unit square, with respect to du dv.
     fn pdf(&self, u: f32, v: f32) -> f64 {
+        self.pdf_near(u, v, Cell { i: usize::MAX, k: usize::MAX, corners: [0.0; 4] })
+    }
+
+    /// [`Warp::pdf`], reading the corners from `near` when (u, v) lies in that cell (as a
+    /// sample's point does): the same value, without fetching them again.
+    #[inline]
+    fn pdf_near(&self, u: f32, v: f32, near: Cell) -> f64 {
         if !(self.total > 0.0) {
             return 0.0;
         }
@@ -463,10 +494,19 @@ impl Warp {
         let k = (py.max(0.0) as usize).min(self.nv - 1);
         let fx = (px - i as f32).clamp(0.0, 1.0) as f64;
         let fy = (py - k as f32).clamp(0.0, 1.0) as f64;
-        let c = self.corners(i, k).map(f64::from);
+        let c = if (i, k) == (near.i, near.k) { near.corners } else { self.corners(i, k) };
+        let c = c.map(f64::from);
         let value = (c[0] * (1.0 - fx) + c[1] * fx) * (1.0 - fy) + (c[2] * (1.0 - fx) + c[3] * fx) * fy;
         value * (self.nu * self.nv) as f64 / self.total
     }
+}
+
+/// A cell of the warp's grid and its corner values ([`Warp::corners`]).
+#[derive(Clone, Copy)]
+struct Cell {
+    i: usize,
+    k: usize,
+    corners: [f32; 4],
 }
 
 /// Rows of cells per texel row: two (so that texel centres are vertices), more for maps so

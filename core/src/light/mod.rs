@@ -88,13 +88,39 @@ pub enum Light {
 pub struct LightSample {
     /// Unit direction from the reference point towards the light.
     pub wi: Vec3,
-    /// Incident radiance (already divided by nothing: the caller divides by `pdf`).
-    pub li: Rgb,
+    /// Incident radiance (the caller divides by `pdf`): [`LightSample::li`].
+    li: Incident,
     /// Solid-angle pdf of `wi` (1 for delta lights).
     pub pdf: f32,
     pub delta: bool,
     /// The point on the light, offset off its surface; `None` for lights at infinity.
     pub target: Option<Vec3>,
+}
+
+/// A light sample's incident radiance, or the point of an environment map where it is to be
+/// looked up: only once the shadow ray is clear (in fur most are blocked), as the lookup is a
+/// bilinear fetch from a large image.
+#[derive(Clone, Copy, Debug)]
+enum Incident {
+    Known(Rgb),
+    EnvMap(Vec2),
+}
+
+impl LightSample {
+    /// Whether the incident radiance is certainly zero (an environment map's, not yet looked
+    /// up, is taken as not: it is sampled only where it shines).
+    pub fn is_black(&self) -> bool {
+        matches!(self.li, Incident::Known(c) if c == Rgb::ZERO)
+    }
+
+    /// The incident radiance, from `light`, the light that gave this sample.
+    pub fn li(&self, light: &Light) -> Rgb {
+        match (self.li, light) {
+            (Incident::Known(c), _) => c,
+            (Incident::EnvMap(uv), Light::Envmap(e)) => e.radiance_at(uv),
+            (Incident::EnvMap(_), _) => unreachable!("an environment map's sample from another light"),
+        }
+    }
 }
 
 impl Light {
@@ -166,7 +192,7 @@ impl Light {
                 let li = radiance.eval(sp.uv.into());
                 Some(LightSample {
                     wi,
-                    li,
+                    li: Incident::Known(li),
                     pdf,
                     delta: false,
                     target: Some(crate::math::offset_ray_origin(sp.p, sp.p_err, sp.n, -wi)),
@@ -180,7 +206,7 @@ impl Light {
                 }
                 Some(LightSample {
                     wi: v / dist2.sqrt(),
-                    li: *intensity / dist2,
+                    li: Incident::Known(*intensity / dist2),
                     pdf: 1.0,
                     delta: true,
                     target: Some(*position),
@@ -203,25 +229,25 @@ impl Light {
                 };
                 Some(LightSample {
                     wi,
-                    li: *intensity * (falloff / dist2),
+                    li: Incident::Known(*intensity * (falloff / dist2)),
                     pdf: 1.0,
                     delta: true,
                     target: Some(*position),
                 })
             }
             Light::Directional { direction, irradiance } => {
-                Some(LightSample { wi: -*direction, li: *irradiance, pdf: 1.0, delta: true, target: None })
+                Some(LightSample { wi: -*direction, li: Incident::Known(*irradiance), pdf: 1.0, delta: true, target: None })
             }
             Light::Constant { radiance } => Some(LightSample {
                 wi: square_to_uniform_sphere(u),
-                li: *radiance,
+                li: Incident::Known(*radiance),
                 pdf: INV_FOUR_PI,
                 delta: false,
                 target: None,
             }),
             Light::Envmap(e) => {
-                let (wi, li, pdf) = e.sample(u)?;
-                Some(LightSample { wi, li, pdf, delta: false, target: None })
+                let (wi, uv, pdf) = e.sample_direction(u)?;
+                Some(LightSample { wi, li: Incident::EnvMap(uv), pdf, delta: false, target: None })
             }
         }
     }
@@ -345,7 +371,7 @@ fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Optio
     let p_err = (center.abs() + (n * radius).abs()) * crate::math::gamma(6);
     Some(LightSample {
         wi,
-        li: radiance.eval(s.uv(n).into()),
+        li: Incident::Known(radiance.eval(s.uv(n).into())),
         pdf: 1.0 / (2.0 * PI * one_minus_cos_max),
         delta: false,
         target: Some(crate::math::offset_ray_origin(p_on, p_err, n, -wi)),
