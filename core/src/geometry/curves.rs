@@ -363,18 +363,19 @@ impl Segment {
     /// Whether `x` (relative to `origin`) lies strictly inside the segment's frustum.
     fn inside_frustum(&self, origin: DVec3, x: DVec3) -> bool {
         let axis = (self.p1 - self.p0).as_dvec3();
-        let len = axis.length();
-        if !(len > 0.0) {
+        let len2 = axis.length_squared();
+        if !(len2 > 0.0) {
             return false;
         }
-        let a = axis / len;
         let v = x - (self.p0.as_dvec3() - origin);
-        let z = v.dot(a);
-        if !(z > 0.0 && z < len) {
+        // The position along the segment, 0 at p0 and 1 at p1 (no square root: see
+        // `candidates`).
+        let s = v.dot(axis) / len2;
+        if !(s > 0.0 && s < 1.0) {
             return false;
         }
-        let r = self.r0 as f64 + (self.r1 - self.r0) as f64 * (z / len);
-        (v - a * z).length_squared() < r * r * (1.0 - INSIDE_TOL)
+        let r = self.r0 as f64 + (self.r1 - self.r0) as f64 * s;
+        (v - axis * s).length_squared() < r * r * (1.0 - INSIDE_TOL)
     }
 
     /// Every front-facing hit on the frustum and, if `joint`, the sphere at `p1`, within
@@ -396,22 +397,27 @@ impl Segment {
             }
         };
         let axis = (self.p1 - self.p0).as_dvec3();
-        let len = axis.length();
-        if len > 0.0 {
-            let a = axis / len;
-            let k = (self.r1 - self.r0) as f64 / len;
-            let (oz, dz) = (o.dot(a), d.dot(a));
-            let (op, dp) = (o - a * oz, d - a * dz);
+        let len2 = axis.length_squared();
+        if len2 > 0.0 {
+            // In terms of s, the position along the segment (0 at p0, 1 at p1), so that the
+            // axis needs no normalising: one division where a square root and divisions by
+            // the length stood in a chain (this test's latency is its cost).
+            let inv = 1.0 / len2;
+            let k = (self.r1 - self.r0) as f64;
+            let (os, ds) = (o.dot(axis) * inv, d.dot(axis) * inv);
+            let (op, dp) = (o - axis * os, d - axis * ds);
             let r0 = self.r0 as f64;
-            // |op + t dp|^2 = (r0 + k (oz + t dz))^2
-            let qa = dp.length_squared() - k * k * dz * dz;
-            let qb = 2.0 * (op.dot(dp) - k * dz * (r0 + k * oz));
-            let qc = op.length_squared() - (r0 + k * oz).powi(2);
+            // |op + t dp|^2 = (r0 + k (os + t ds))^2
+            let (ra, rb) = (r0 + k * os, k * ds);
+            let qa = dp.length_squared() - rb * rb;
+            let qb = 2.0 * (op.dot(dp) - ra * rb);
+            let qc = op.length_squared() - ra * ra;
             for t in solve_quadratic(qa, qb, qc) {
-                let z = oz + t * dz;
-                if z >= 0.0 && z <= len && r0 + k * z > 0.0 {
+                let s = os + t * ds;
+                if (0.0..=1.0).contains(&s) && r0 + k * s > 0.0 {
                     let x = o + d * t;
-                    push(t, z / len, x - a * z - a * ((r0 + k * z) * k), Piece::Frustum);
+                    // The outward normal: off the axis, tilted back by the taper.
+                    push(t, s, x - axis * s - axis * ((r0 + k * s) * k * inv), Piece::Frustum);
                 }
             }
         }
