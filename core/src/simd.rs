@@ -108,38 +108,26 @@ mod imp {
         }
     }
 
-    macro_rules! f4_op {
-        ($t:ident, $f:ident, $i:ident) => {
-            impl $t for F4 {
-                type Output = F4;
+    macro_rules! op {
+        ($s:ident, $t:ident, $f:ident, $i:ident) => {
+            impl $t for $s {
+                type Output = $s;
                 #[inline(always)]
-                fn $f(self, b: F4) -> F4 {
-                    F4(unsafe { $i(self.0, b.0) })
+                fn $f(self, b: $s) -> $s {
+                    $s(unsafe { $i(self.0, b.0) })
                 }
             }
         };
     }
-    f4_op!(Add, add, _mm_add_ps);
-    f4_op!(Sub, sub, _mm_sub_ps);
-    f4_op!(Mul, mul, _mm_mul_ps);
-    f4_op!(Div, div, _mm_div_ps);
-
-    macro_rules! i4_op {
-        ($t:ident, $f:ident, $i:ident) => {
-            impl $t for I4 {
-                type Output = I4;
-                #[inline(always)]
-                fn $f(self, b: I4) -> I4 {
-                    I4(unsafe { $i(self.0, b.0) })
-                }
-            }
-        };
-    }
-    i4_op!(Add, add, _mm_add_epi32);
-    i4_op!(Sub, sub, _mm_sub_epi32);
-    i4_op!(BitAnd, bitand, _mm_and_si128);
-    i4_op!(BitOr, bitor, _mm_or_si128);
-    i4_op!(BitXor, bitxor, _mm_xor_si128);
+    op!(F4, Add, add, _mm_add_ps);
+    op!(F4, Sub, sub, _mm_sub_ps);
+    op!(F4, Mul, mul, _mm_mul_ps);
+    op!(F4, Div, div, _mm_div_ps);
+    op!(I4, Add, add, _mm_add_epi32);
+    op!(I4, Sub, sub, _mm_sub_epi32);
+    op!(I4, BitAnd, bitand, _mm_and_si128);
+    op!(I4, BitOr, bitor, _mm_or_si128);
+    op!(I4, BitXor, bitxor, _mm_xor_si128);
 }
 
 #[cfg(not(target_arch = "x86_64"))]
