@@ -196,11 +196,11 @@ mod imp {
         }
         #[inline(always)]
         pub fn shl<const N: i32>(self) -> I4 {
-            I4(self.0.map(|x| ((x as u32) << N) as i32))
+            I4(self.0.map(|x| (x as u32).checked_shl(N as u32).unwrap_or(0) as i32))
         }
         #[inline(always)]
         pub fn shr<const N: i32>(self) -> I4 {
-            I4(self.0.map(|x| ((x as u32) >> N) as i32))
+            I4(self.0.map(|x| (x as u32).checked_shr(N as u32).unwrap_or(0) as i32))
         }
         #[inline(always)]
         pub fn select(self, a: F4, b: F4) -> F4 {
@@ -259,13 +259,13 @@ impl F4 {
     /// e^x per lane, within 1e-7 relative (`exp_and_ln_are_the_librarys`): e^x = 2^n e^r with n =
     /// x log2(e) rounded (by the 1.5 * 2^23 trick, exact in this range) and r = x - n ln 2 in
     /// two parts (Cody and Waite), e^r by a degree-7 minimax polynomial on |r| <= ln(2) / 2, and
-    /// 2^n built in the exponent bits. Below -87 (where f32 turns subnormal) it gives 0, above
+    /// 2^n built in the exponent bits. Below -87 (f32 turns subnormal below -87.34) it gives 0, above
     /// 88 e^88 (1.65e38) rather than infinity; NaN gives NaN.
     #[inline(always)]
     pub fn exp(self) -> F4 {
         let s = F4::splat;
         let round = s(12_582_912.0); // 1.5 * 2^23
-        let x = self.max(s(-87.0)).min(s(88.0)); // NaN becomes 88 here; restored below
+        let x = self.max(s(-87.0)).min(s(88.0)); // a NaN becomes a number here; restored below
         let n = (x * s(std::f32::consts::LOG2_E) + round) - round;
         let r = (x - n * s(0.693_359_4)) - n * s(-2.121_944_4e-4);
         let mut p = s(1.987_569_1e-4);

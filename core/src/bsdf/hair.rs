@@ -8,8 +8,9 @@
 //!
 //! f cos = sum_p Mp(theta_i, theta_o) Ap(theta_o, h) Np(phi), p = R, TT, TRT, plus a residual
 //! lobe (p = 3) for all longer paths with an isotropic azimuth:
-//! - Mp: d'Eon et al. 2011's longitudinal term, in log form for v <= 0.1 so that neither
-//!   sinh(1/v) nor I0 overflows; the cuticle tilt rotates theta_o per lobe.
+//! - Mp: d'Eon et al. 2011's longitudinal term, in log form (for every v) so that neither
+//!   sinh(1/v) nor I0 overflows; the cuticle tilt rotates theta_o per lobe. The four lobes'
+//!   Mp and Np are computed together, a lobe a lane ([`crate::simd::F4`]).
 //! - Ap: Fresnel and the absorption T = exp(-sigma_a 2 cos gamma_t / cos theta_t).
 //! - Np: a logistic in phi - Phi(p, h), trimmed to [-pi, pi].
 //!

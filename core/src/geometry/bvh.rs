@@ -771,6 +771,11 @@ impl Accel {
         assert!(count <= MAX_PRIMS, "{count} primitives: one BVH holds at most {MAX_PRIMS}");
         let kernel = Kernel::detect();
         let curves = members.iter().any(|&s| matches!(shapes[s as usize].geometry, Geometry::Curves(_)));
+        let fibres: usize = members
+            .iter()
+            .filter(|&&s| matches!(shapes[s as usize].geometry, Geometry::Curves(_)))
+            .map(|&s| shapes[s as usize].prim_count())
+            .sum();
         let refs = || {
             members.iter().flat_map(|&s| {
                 let shape = &shapes[s as usize];
@@ -801,13 +806,13 @@ impl Accel {
         }
         // Past two million primitives (a quarter of a million fibres), obvhs' better builds
         // cost more time than they save (docs/BENCHMARKS.md, "Fur at scale"). Below, a tree
-        // holding fibres takes its slowest build (every node tried for reinsertion): render
+        // mostly of fibres takes its slowest build (every node tried for reinsertion): render
         // instructions -5.4% on whimsical.xml, -2.7% on hair.xml, -4.6% on a generated fur of
         // 260k primitives, for about 3 us more a primitive of building (0.7 s there). Triangle
         // scenes keep the medium build: cbox -2%, but thinlens +3.8%.
         let mut params = if count > FAST_BUILD_ABOVE {
             BvhBuildParams::very_fast_build()
-        } else if curves {
+        } else if 2 * fibres >= count {
             BvhBuildParams::very_slow_build()
         } else {
             BvhBuildParams::medium_build()

@@ -16,9 +16,10 @@
 //! between the cells' edges. Maps shorter than 16 texels get more rows of cells per texel (a
 //! power of two), so that sin(theta) is still followed (a 1 x 1 map has 32).
 //!
-//! The density is sampled by hierarchical warping (a quadtree of cell sums): the sample
-//! descends from the root, choosing in each 2 x 2 block first the column, then the row, by
-//! their sums, and rescales itself to stay uniform; inside the cell it inverts the bilinear
+//! The density is sampled by hierarchical warping (a tree of cell sums with 4 x 4 children a
+//! node, over sums of 2 x 2 cells): the sample descends from the root, choosing in each block
+//! first the column, then the row, by their sums, and rescales itself to stay uniform; last
+//! it chooses among the 2 x 2 cells the same way; inside the cell it inverts the bilinear
 //! patch, its marginal (linear in v) and then its conditional (linear in u). The pdf of any
 //! direction is the bilinear value at its (u, v) over the grid's integral: no tree walk, and
 //! exact for every direction.
@@ -176,7 +177,7 @@ impl EnvMap {
             _ => (4 * (nu + 1) * (nv + 1), 4 * (nu + 1) * (nv + 1)),
         };
         // Texel luminance (while the grid is made), the grid, the corners being built, and
-        // the levels (two of them twice while a level is made).
+        // the levels (counted half again: a level and the one made from it are held together).
         (4 * w * h + grid + corners + levels + levels / 2, corners + levels)
     }
 
@@ -920,6 +921,29 @@ mod tests {
             }
             assert!(near > 0);
         }
+    }
+
+    /// The pdf that a sample reads from its own cell's corners (`pdf_near`) is `Warp::pdf` at
+    /// its point, bit for bit, with either filter and with and without compensation.
+    #[test]
+    fn a_samples_pdf_is_the_pdf_of_its_point() {
+        let bmp = Arc::new(sky_with_sun(37, 19, (30, 6), 2, 1000.0));
+        let mut checked = 0;
+        for filter in [FilterType::Bilinear, FilterType::Nearest] {
+            for compensate in [false, true] {
+                let env = EnvMap::new(bmp.clone(), 1.0, Mat3::IDENTITY, filter, compensate);
+                let w = &env.warp;
+                for i in 0..20_000 {
+                    let ux = (i as f64 + 0.5) / 20_000.0;
+                    let uy = (i as f64 * 0.618_033_988_749_895).fract();
+                    if let Some((u, v, cell)) = w.sample(ux, uy) {
+                        assert_eq!(w.pdf_near(u, v, cell).to_bits(), w.pdf(u, v).to_bits(), "{u} {v}");
+                        checked += 1;
+                    }
+                }
+            }
+        }
+        assert!(checked > 70_000, "{checked} samples");
     }
 
     /// pick4 takes each weight in proportion, never one of 0 (also when u * sum rounds up to

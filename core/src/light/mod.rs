@@ -108,7 +108,8 @@ enum Incident {
 
 impl LightSample {
     /// Whether the incident radiance is certainly zero (an environment map's, not yet looked
-    /// up, is taken as not: it is sampled only where it shines).
+    /// up, is taken as not: importance sampling picks only directions where it shines, up to
+    /// underflow of a tiny `scale`, which then costs a shadow ray and adds zero).
     pub fn is_black(&self) -> bool {
         matches!(self.li, Incident::Known(c) if c == Rgb::ZERO)
     }
@@ -247,7 +248,11 @@ impl Light {
             }),
             Light::Envmap(e) => {
                 let (wi, uv, pdf) = e.sample_direction(u)?;
-                Some(LightSample { wi, li: Incident::EnvMap(uv), pdf, delta: false, target: None })
+                // Sampled by the map, a direction shines (its density follows the luminance);
+                // sampled uniformly (the ablation), it may not: looked up now, as a black one
+                // needs no shadow ray.
+                let li = if e.uniform { Incident::Known(e.radiance_at(uv)) } else { Incident::EnvMap(uv) };
+                Some(LightSample { wi, li, pdf, delta: false, target: None })
             }
         }
     }
@@ -451,6 +456,53 @@ pub(crate) fn area_radiance_from(b: &mut Builder, i: usize) -> R<Texture> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An environment map's samples: by importance, the radiance is looked up later, never
+    /// taken as black, and is the white half's; by the uniform ablation, a black direction is
+    /// known black at once (no shadow ray) and the radiance is the map's in that direction.
+    #[test]
+    fn environment_samples_defer_only_what_shines() {
+        use crate::texture::{Bitmap, FilterType};
+        // The upper half of the sky white, the lower black.
+        let texels = (0..8 * 4).map(|k| if k < 16 { Rgb::ONE } else { Rgb::ZERO }).collect();
+        let bmp = std::sync::Arc::new(Bitmap { width: 8, height: 4, texels });
+        let it = Interaction {
+            p: Vec3::ZERO,
+            p_err: Vec3::ZERO,
+            t: 1.0,
+            ng: Vec3::Y,
+            frame: crate::math::Frame::from_normal(Vec3::Y),
+            uv: Vec2::ZERO,
+            dpdu: Vec3::X,
+            dpdv: Vec3::Z,
+            shape: 0,
+            prim: 0,
+        };
+        for uniform in [false, true] {
+            let mut env = EnvMap::new(bmp.clone(), 1.0, glam::Mat3::IDENTITY, FilterType::Nearest, false);
+            env.uniform = uniform;
+            let light = Light::Envmap(std::sync::Arc::new(env));
+            let (mut black, mut none, n) = (0, 0, 1000);
+            for i in 0..n {
+                let u = Vec2::new((i as f32 + 0.5) / n as f32, (i as f32 * 0.618_034).fract());
+                // (None only where a sample's pdf rounds to 0, at a pole.)
+                let Some(ls) = light.sample(&[], &it, u, || 0.5) else {
+                    none += 1;
+                    continue;
+                };
+                black += ls.is_black() as usize;
+                if uniform {
+                    let Light::Envmap(e) = &light else { unreachable!() };
+                    assert_eq!(ls.li(&light), e.eval(ls.wi), "{i}");
+                } else {
+                    assert!(matches!(ls.li, Incident::EnvMap(_)) && ls.li(&light) == Rgb::ONE, "{i}");
+                }
+            }
+            // Uniformly, about half the sphere is black; by importance, none of it.
+            assert!(if uniform { (400..600).contains(&black) } else { black == 0 }, "{uniform}: {black}");
+            assert!(none < 10, "{uniform}: {none} samples without a direction");
+        }
+    }
 
     /// The reused number covers [0, 1) again within each primitive, in order, and a single
     /// primitive's is the number itself.
