@@ -278,7 +278,8 @@ impl Hair {
 
 /// Abramowitz and Stegun 9.8.1: I0(x) for |x| <= 3.75 as a polynomial in t = (x / 3.75)^2
 /// (within 1.6e-7).
-const I0_SMALL: [f32; 7] = [1.0, 3.515_622_9, 3.089_942_4, 1.206_749_2, 0.265_973_2, 0.036_076_8, 0.004_581_3];
+const I0_SMALL: [f32; 7] =
+    [1.0, 3.515_622_9, 3.089_942_4, 1.206_749_2, 0.265_973_2, 0.036_076_8, 0.004_581_3];
 /// Abramowitz and Stegun 9.8.2: sqrt(x) e^-x I0(x) for x >= 3.75 as a polynomial in t = 3.75 / x
 /// (within 1.9e-7).
 const I0_LARGE: [f32; 9] = [

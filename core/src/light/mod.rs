@@ -236,9 +236,13 @@ impl Light {
                     target: Some(*position),
                 })
             }
-            Light::Directional { direction, irradiance } => {
-                Some(LightSample { wi: -*direction, li: Incident::Known(*irradiance), pdf: 1.0, delta: true, target: None })
-            }
+            Light::Directional { direction, irradiance } => Some(LightSample {
+                wi: -*direction,
+                li: Incident::Known(*irradiance),
+                pdf: 1.0,
+                delta: true,
+                target: None,
+            }),
             Light::Constant { radiance } => Some(LightSample {
                 wi: square_to_uniform_sphere(u),
                 li: Incident::Known(*radiance),
