@@ -77,15 +77,13 @@ impl Hair {
             sin2k[i] = 2.0 * cos2k[i - 1] * sin2k[i - 1];
             cos2k[i] = cos2k[i - 1] * cos2k[i - 1] - sin2k[i - 1] * sin2k[i - 1];
         }
-        // In f64: 1 - e^(-2 / v) is near 2 / v for large v.
-        let mp_k = F4::new(v.map(mp_k));
         Hair {
             sigma_a,
             eta,
             v,
             s,
             inv_v: F4::new(v.map(|v| 1.0 / v)),
-            mp_k,
+            mp_k: F4::new(v.map(mp_k)),
             exp_m2_over_v: v.map(|v| (-2.0 / v).exp()),
             tilt_a: F4::new([cos2k[1], cos2k[0], cos2k[2], 1.0]),
             tilt_b: F4::new([-sin2k[1], sin2k[0], sin2k[2], 0.0]),

@@ -770,12 +770,12 @@ impl Accel {
         let count: usize = members.iter().map(|&s| shapes[s as usize].prim_count()).sum();
         assert!(count <= MAX_PRIMS, "{count} primitives: one BVH holds at most {MAX_PRIMS}");
         let kernel = Kernel::detect();
-        let curves = members.iter().any(|&s| matches!(shapes[s as usize].geometry, Geometry::Curves(_)));
         let fibres: usize = members
             .iter()
             .filter(|&&s| matches!(shapes[s as usize].geometry, Geometry::Curves(_)))
             .map(|&s| shapes[s as usize].prim_count())
             .sum();
+        let curves = fibres > 0;
         let refs = || {
             members.iter().flat_map(|&s| {
                 let shape = &shapes[s as usize];

@@ -229,6 +229,12 @@ impl EnvMap {
     /// [`EnvMap::lookup`] finds its texel, so that both agree on which texel (nearest) a
     /// point lies in.
     fn pdf_at(&self, uv: Vec2, sin_t: f64) -> f32 {
+        self.pdf_in(uv, sin_t, Cell::NONE)
+    }
+
+    /// [`EnvMap::pdf_at`], reading the corners from `near` where (u, v) lies in that cell
+    /// ([`Warp::pdf_near`]).
+    fn pdf_in(&self, uv: Vec2, sin_t: f64, near: Cell) -> f32 {
         if self.warp.total <= 0.0 {
             return 0.0;
         }
@@ -242,7 +248,7 @@ impl EnvMap {
         if us < 0.0 {
             us += 1.0;
         }
-        (self.warp.pdf(us, uv.y) / (2.0 * PI64 * PI64 * sin_t)) as f32
+        (self.warp.pdf_near(us, uv.y, near) / (2.0 * PI64 * PI64 * sin_t)) as f32
     }
 
     /// Radiance arriving from world direction `d` (pointing away from the scene).
@@ -289,17 +295,10 @@ impl EnvMap {
         let (sin_t, cos_t) = sin_cos_2pi(0.5 * v);
         let l = Vec3::new(sin_t * sin_p, cos_t, -sin_t * cos_p);
         let d = (self.to_world * l).normalize();
-        // Radiance and pdf at the same (f32) point, so that they agree on the texel: the pdf
-        // as `pdf_at` gives it there, from the sampled cell's corners where it is that cell.
+        // Radiance and pdf at the same (f32) point, so that they agree on the texel; the pdf
+        // reads the sampled cell's corners where the point is in that cell.
         let uv = Vec2::new(uu, v);
-        if !(sin_t > 0.0) {
-            return None;
-        }
-        let mut us = uv.x - self.u_shift;
-        if us < 0.0 {
-            us += 1.0;
-        }
-        let pdf = (self.warp.pdf_near(us, uv.y, cell) / (2.0 * PI64 * PI64 * sin_t as f64)) as f32;
+        let pdf = self.pdf_in(uv, sin_t as f64, cell);
         (pdf > 0.0).then_some((d, uv, pdf))
     }
 
@@ -478,9 +477,11 @@ impl Warp {
         Some((in_cell(x, fx, self.nu), in_cell(y, fy, self.nv), Cell { i: x, k: y, corners }))
     }
 
-    /// Density at (u, v) in the unit square, with respect to du dv.
+    /// Density at (u, v) in the unit square, with respect to du dv (what [`Warp::pdf_near`]
+    /// gives with no cell).
+    #[cfg(test)]
     fn pdf(&self, u: f32, v: f32) -> f64 {
-        self.pdf_near(u, v, Cell { i: usize::MAX, k: usize::MAX, corners: [0.0; 4] })
+        self.pdf_near(u, v, Cell::NONE)
     }
 
     /// [`Warp::pdf`], reading the corners from `near` when (u, v) lies in that cell (as a
@@ -508,6 +509,11 @@ struct Cell {
     i: usize,
     k: usize,
     corners: [f32; 4],
+}
+
+impl Cell {
+    /// No cell: the corners are always fetched.
+    const NONE: Cell = Cell { i: usize::MAX, k: usize::MAX, corners: [0.0; 4] };
 }
 
 /// Rows of cells per texel row: two (so that texel centres are vertices), more for maps so
