@@ -11,7 +11,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use furnace_core::bsdf::Bsdf;
-use furnace_core::light::Light;
+use furnace_core::light::{Light, LightKind};
 use furnace_core::scene::xml::{Doc, Prop, Value};
 use furnace_core::texture::{FilterType, Texture};
 use furnace_core::{Image, Scene};
@@ -91,12 +91,10 @@ impl Ablation {
         if t.mis {
             all.extend([Ablation::BsdfSamplingOnly, Ablation::LightSamplingOnly]);
         }
-        let envmaps =
-            || scene.lights.iter().filter_map(|l| if let Light::Envmap(e) = l { Some(e) } else { None });
-        if t.mis && envmaps().any(|e| e.compensated()) {
+        if t.mis && scene.lights.iter().any(Light::is_compensated) {
             all.push(Ablation::NoMisCompensation);
         }
-        if envmaps().next().is_some() {
+        if scene.has_light(LightKind::Envmap) {
             all.push(Ablation::UniformEnvironment);
         }
         if scene.bsdfs.iter().any(|b| b.any(&|b| matches!(b, Bsdf::Hair(_)))) {
@@ -152,9 +150,9 @@ impl Ablation {
             // Light sampling alone must sample every direction: no MIS compensation.
             Ablation::LightSamplingOnly => {
                 s.techniques.mis = false;
-                set_compensation(s, false);
+                s.set_mis_compensation(false);
             }
-            Ablation::NoMisCompensation => set_compensation(s, false),
+            Ablation::NoMisCompensation => s.set_mis_compensation(false),
             Ablation::UniformEnvironment => {
                 for l in &mut s.lights {
                     if let Light::Envmap(e) = l {
@@ -171,15 +169,6 @@ impl Ablation {
         let mut scene = Scene::load_edited(path, defines, &|doc| self.edit(doc))?;
         self.apply(&mut scene);
         Ok(scene)
-    }
-}
-
-/// Turns MIS compensation of the scene's environment maps on or off.
-fn set_compensation(scene: &mut Scene, on: bool) {
-    for l in &mut scene.lights {
-        if let Light::Envmap(e) = l {
-            *e = Arc::new(e.with_compensation(on));
-        }
     }
 }
 

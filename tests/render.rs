@@ -93,6 +93,48 @@ fn white_furnace_closed_emitters_return_one_over_one_minus_albedo() {
     }
 }
 
+/// A diffuse plane (albedo 0.5) under a constant emitter, direct light only. MIS-compensated
+/// (as loaded), the constant is left to BSDF sampling, whose cosine-weighted samples each carry
+/// exactly albedo x radiance: every pixel reads that to rounding. Without compensation light
+/// sampling picks the sphere uniformly too: the same mean, with noise.
+#[test]
+fn a_diffuse_plane_under_a_constant_reads_albedo_times_radiance() {
+    let xml = r#"<scene version="3.0.0">
+        <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+        <sensor type="perspective"><float name="fov" value="30"/>
+            <transform name="to_world"><lookat origin="0, 5, 0" target="0, 0, 0" up="0, 0, 1"/></transform>
+            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
+                <rfilter type="box"/></film>
+        </sensor>
+        <emitter type="constant"><rgb name="radiance" value="0.7, 1, 1.3"/></emitter>
+        <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="100"/></transform>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+    </scene>"#;
+    let expected = [0.35f32, 0.5, 0.65];
+    let mut s = load_str(xml).unwrap();
+    assert!(s.lights[0].is_compensated() && s.sampled_lights.is_empty());
+    let (acc, st) = render(&s, 16, 1);
+    assert_eq!(st.shadow_rays, 0, "nothing to light-sample");
+    let img = acc.develop();
+    for p in &img.data {
+        for c in 0..3 {
+            assert!((p[c] / expected[c] - 1.0).abs() < 1e-5, "{p:?} vs {expected:?}");
+        }
+    }
+    s.set_mis_compensation(false);
+    assert_eq!(s.sampled_lights, [0]);
+    let (acc, st) = render(&s, 16, 1);
+    assert!(st.shadow_rays > 0);
+    let img = acc.develop();
+    let n = img.data.len() as f64;
+    for c in 0..3 {
+        let mean = img.data.iter().map(|p| p[c] as f64).sum::<f64>() / n;
+        let spread = img.data.iter().map(|p| (p[c] as f64 / mean - 1.0).abs()).fold(0.0, f64::max);
+        assert!((mean / expected[c] as f64 - 1.0).abs() < 0.01, "channel {c}: mean {mean}");
+        assert!(spread > 1e-3, "channel {c}: uniform light sampling without noise?");
+    }
+}
+
 /// A diffuse plane (albedo 0.5) under the sun/sky map, direct light only: every pixel reads
 /// 0.5 / pi times the map's irradiance on an upward face, E = integral of L cos theta over the
 /// upper hemisphere, which a midpoint rule over the map (16 points a texel) gives
@@ -217,16 +259,28 @@ fn stages_absent_from_the_plan_never_run() {
     let text = cbox.describe().to_string();
     assert!(text.contains("pinhole") && !text.contains("point") && !text.contains("infinite"), "{text}");
 
-    // small: every one of those stages is planned and runs.
-    let small = load("small.xml", &[]);
+    // small: every one of those stages is planned and runs. Its constant emitter is
+    // MIS-compensated: left to BSDF sampling, never light-sampled, and the plan says so.
+    let mut small = load("small.xml", &[]);
     let (_, st) = render(&small, 2, 0);
-    for k in [LightKind::Area, LightKind::Point, LightKind::Constant] {
+    for k in [LightKind::Area, LightKind::Point] {
         assert!(small.has_light(k) && st.light_samples_of(k) > 0, "{k:?}");
     }
     for k in [LightKind::Spot, LightKind::Directional, LightKind::Envmap] {
         assert!(!small.has_light(k) && st.light_samples_of(k) == 0, "{k:?}");
     }
     assert!(st.escaped_lookups > 0 && st.lens_samples > 0);
+    assert!(small.has_light(LightKind::Constant) && st.light_samples_of(LightKind::Constant) == 0);
+    let text = small.describe().to_string();
+    assert!(text.contains("light sampling: area, point\n"), "{text}");
+    assert!(text.contains("constant emitter: left to BSDF sampling"), "{text}");
+    // Without compensation (furnace report's ablation) light sampling picks it too.
+    small.set_mis_compensation(false);
+    let (_, st) = render(&small, 2, 0);
+    assert!(st.light_samples_of(LightKind::Constant) > 0);
+    let text = small.describe().to_string();
+    assert!(text.contains("light sampling: area, point, constant\n"), "{text}");
+    assert!(!text.contains("left to BSDF sampling"), "{text}");
 }
 
 #[test]

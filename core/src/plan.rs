@@ -105,8 +105,20 @@ impl PlanDescription {
             "intersect (8-wide BVH)".to_string(),
         ];
         if t.light_sampling {
-            let kinds: Vec<&str> = emitters.iter().map(|c| c.kind).collect();
-            stages.push(format!("light sampling: {}", kinds.join(", ")));
+            let mut kinds: Vec<&str> = Vec::new();
+            for &k in &scene.sampled_lights {
+                let name = scene.lights[k as usize].kind().name();
+                if !kinds.contains(&name) {
+                    kinds.push(name);
+                }
+            }
+            if !kinds.is_empty() {
+                kinds.sort_by_key(|n| LightKind::ALL.iter().position(|k| k.name() == *n));
+                stages.push(format!("light sampling: {}", kinds.join(", ")));
+            }
+            if t.mis && scene.lights.iter().any(|l| matches!(l, Light::Constant { compensated: true, .. })) {
+                stages.push("constant emitter: left to BSDF sampling (MIS-compensated)".into());
+            }
         }
         if t.mis {
             stages.push("MIS (power heuristic): BSDF sampling x light sampling".into());

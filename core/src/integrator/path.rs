@@ -37,7 +37,9 @@ pub fn li(
     if settings.max_depth == 0 {
         return Rgb::ZERO; // Mitsuba: max_depth 0 renders nothing, not even emitters
     }
-    let n_lights = scene.lights.len();
+    // Light sampling picks among `sampled_lights`: a MIS-compensated constant is left to BSDF
+    // sampling (its light pdf is 0, so what BSDF sampling finds of it weighs 1).
+    let n_lights = scene.sampled_lights.len();
     let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
     // Whether light sampling picks a light. The light (of at most REUSE_LIGHTS), and an area
     // light's primitive (`Light::sample`), are picked by reusing the light sample's first
@@ -67,7 +69,7 @@ pub fn li(
                 st.escaped_lookups += 1;
                 for &k in &scene.infinite_lights {
                     let light = &scene.lights[k as usize];
-                    let (le, w) = if unweighted {
+                    let (le, w) = if unweighted || !light.is_sampled() {
                         (light.le_infinite(ray.d), 1.0)
                     } else if !plan.mis {
                         (Rgb::ZERO, 0.0)
@@ -137,7 +139,7 @@ pub fn li(
         let mut choices = s.defer_4d();
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
-        if plan.light_sampling && bsdf.is_smooth() {
+        if plan.light_sampling && n_lights > 0 && bsdf.is_smooth() {
             let (k, lu) = if !chooses_light {
                 (0, lu)
             } else if reuses_for_light {
@@ -147,7 +149,7 @@ pub fn li(
             } else {
                 (((choices.get(s)[0] * n_lights as f32) as usize).min(n_lights - 1), lu)
             };
-            let light = &scene.lights[k];
+            let light = &scene.lights[scene.sampled_lights[k] as usize];
             st.light_samples[light.kind() as usize] += 1;
             let spare = || choices.get(s)[3];
             if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare) {

@@ -77,8 +77,13 @@ pub enum Light {
         direction: Vec3,
         irradiance: Rgb,
     },
+    /// `compensated`: MIS compensation (Karlik et al. 2019, as for an environment map): a
+    /// constant is nowhere brighter than its mean, so light sampling leaves all of it to BSDF
+    /// sampling, which weights what it finds by 1 (its light pdf is 0). Only beside BSDF
+    /// sampling with MIS; light sampling alone samples the sphere uniformly.
     Constant {
         radiance: Rgb,
+        compensated: bool,
     },
     Envmap(std::sync::Arc<EnvMap>),
 }
@@ -149,6 +154,31 @@ impl Light {
             *c /= acc;
         }
         Light::Area { shape: shape_idx, radiance, cdf, area: acc }
+    }
+
+    /// Whether light sampling picks this light: not a MIS-compensated constant, which it
+    /// leaves to BSDF sampling.
+    pub fn is_sampled(&self) -> bool {
+        !matches!(self, Light::Constant { compensated: true, .. })
+    }
+
+    /// MIS compensation of an environment map or a constant on or off (see each).
+    pub fn set_mis_compensation(&mut self, on: bool) {
+        match self {
+            Light::Envmap(e) => *e = std::sync::Arc::new(e.with_compensation(on)),
+            Light::Constant { compensated, .. } => *compensated = on,
+            _ => {}
+        }
+    }
+
+    /// Whether light sampling uses a MIS-compensated density (or, for a constant, leaves it
+    /// all to BSDF sampling).
+    pub fn is_compensated(&self) -> bool {
+        match self {
+            Light::Envmap(e) => e.compensated(),
+            Light::Constant { compensated, .. } => *compensated,
+            _ => false,
+        }
     }
 
     /// Lights that escaped rays can hit (not the delta `directional`).
@@ -243,7 +273,8 @@ impl Light {
                 delta: true,
                 target: None,
             }),
-            Light::Constant { radiance } => Some(LightSample {
+            Light::Constant { compensated: true, .. } => None,
+            Light::Constant { radiance, compensated: false } => Some(LightSample {
                 wi: square_to_uniform_sphere(u),
                 li: Incident::Known(*radiance),
                 pdf: INV_FOUR_PI,
@@ -288,6 +319,7 @@ impl Light {
     /// Solid-angle pdf with which [`Light::sample`] yields direction `d` of a light at infinity.
     pub fn pdf_infinite(&self, d: Vec3) -> f32 {
         match self {
+            Light::Constant { compensated: true, .. } => 0.0,
             Light::Constant { .. } => INV_FOUR_PI,
             Light::Envmap(e) => e.pdf(d),
             _ => 0.0,
@@ -305,7 +337,7 @@ impl Light {
     /// Radiance arriving from infinity along direction `-d` (a ray travelling along `d` escaped).
     pub fn le_infinite(&self, d: Vec3) -> Rgb {
         match self {
-            Light::Constant { radiance } => *radiance,
+            Light::Constant { radiance, .. } => *radiance,
             Light::Envmap(e) => e.eval(d),
             _ => Rgb::ZERO,
         }
@@ -407,9 +439,10 @@ pub(crate) fn point_from(b: &mut Builder, i: usize, pos: Pos) -> R<Light> {
     Ok(Light::Point { position, intensity })
 }
 
-/// `constant`: `radiance`.
+/// `constant`: `radiance`. MIS-compensated, as an environment map is by default (Mitsuba's
+/// `constant` has no switch for it; `furnace report` measures it off).
 pub(crate) fn constant_from(b: &mut Builder, i: usize, _: Pos) -> R<Light> {
-    Ok(Light::Constant { radiance: b.const_color(i, "radiance", Rgb::ONE)? })
+    Ok(Light::Constant { radiance: b.const_color(i, "radiance", Rgb::ONE)?, compensated: true })
 }
 
 /// `directional`: `irradiance`, `direction` or `to_world`.

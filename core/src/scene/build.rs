@@ -262,11 +262,13 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         bsdfs: b.bsdfs,
         lights: b.lights,
         infinite_lights,
+        sampled_lights: Vec::new(),
         accel,
         techniques: Techniques::default(),
         assets: b.assets,
         load_estimate: b.budget.peak,
     };
+    scene.sampled_lights = super::sampled_lights(&scene.lights);
     scene.techniques = Techniques::derive(&scene);
     Ok(scene)
 }

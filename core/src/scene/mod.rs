@@ -105,6 +105,8 @@ pub struct Scene {
     pub lights: Vec<Light>,
     /// Indices into `lights` of lights at infinity (seen by escaping rays).
     pub infinite_lights: Vec<u32>,
+    /// Indices into `lights` of the lights light sampling picks among ([`Light::is_sampled`]).
+    pub sampled_lights: Vec<u32>,
     pub accel: Accel,
     /// What the integrator runs (see `plan`).
     pub techniques: Techniques,
@@ -113,6 +115,11 @@ pub struct Scene {
     /// The most memory its load was estimated to hold at once (see [`LoadLimits`]): a load
     /// with `max_bytes` below it is refused.
     pub load_estimate: u64,
+}
+
+/// Indices of the lights that light sampling picks among ([`Light::is_sampled`]).
+pub(crate) fn sampled_lights(lights: &[Light]) -> Vec<u32> {
+    (0..lights.len() as u32).filter(|&i| lights[i as usize].is_sampled()).collect()
 }
 
 impl Scene {
@@ -157,6 +164,15 @@ impl Scene {
     /// What rendering this scene does, in words (the render plan's description).
     pub fn describe(&self) -> PlanDescription {
         PlanDescription::of(self)
+    }
+
+    /// MIS compensation of every environment map and constant on or off (`furnace report`'s
+    /// ablations: it is on as loaded), and with it the lights light sampling picks among.
+    pub fn set_mis_compensation(&mut self, on: bool) {
+        for l in &mut self.lights {
+            l.set_mis_compensation(on);
+        }
+        self.sampled_lights = sampled_lights(&self.lights);
     }
 
     /// Whether the scene has a light of this kind.

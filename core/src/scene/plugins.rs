@@ -91,7 +91,7 @@ pub static PLUGINS: &[Plugin] = &[
     p("emitter", "point", "`intensity`, `position` or `to_world`.", Make::Emitter(crate::light::point_from)),
     p("emitter", "spot", "`intensity`, `cutoff_angle` (20), `beam_width` (3/4 of the cutoff), `to_world`.", Make::Emitter(crate::light::spot_from)),
     p("emitter", "directional", "`irradiance`, `direction` or `to_world`.", Make::Emitter(crate::light::directional_from)),
-    p("emitter", "constant", "`radiance`.", Make::Emitter(crate::light::constant_from)),
+    p("emitter", "constant", "`radiance`. Light sampling leaves it to BSDF sampling (MIS compensation, Furnace's own: always on; `furnace report` measures it off).", Make::Emitter(crate::light::constant_from)),
     p("emitter", "envmap", "`filename` (EXR, HDR, PNG), `scale`, `to_world` (a rotation), `mis_compensation` (Furnace's default: true), Furnace's own `filter_type` (`bilinear`, `nearest`).", Make::Emitter(crate::light::envmap::from_scene)),
     p("emitter", "area", "inside a shape (not curves): `radiance`, a colour or a texture.", Make::Area(crate::light::area_radiance_from)),
 ];
