@@ -601,8 +601,9 @@ impl Builder<'_> {
                 Aabb::new(Vec3A::from(lo), Vec3A::from(hi))
             })
             .collect();
-        let bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
+        let mut bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
         drop(aabbs);
+        merge_triangle_leaves(&mut bvh2, |k| refs[k as usize].shape & TRIANGLE != 0);
         let offset = self.prims.len() as u32;
         let order = &bvh2.primitive_indices;
         let depth = self.collapse(&bvh2, slot, |leaf| {
@@ -613,13 +614,18 @@ impl Builder<'_> {
                 | (leaf.prim_count - 1) << FIRST_BITS
                 | (offset + leaf.first_index)
         });
-        // Leaf by leaf, in leaf order: its triangles become one block of `tris`.
-        let mut leaves: Vec<(usize, usize)> = bvh2
-            .nodes
-            .iter()
-            .filter(|n| n.is_leaf())
-            .map(|n| (n.first_index as usize, n.prim_count as usize))
-            .collect();
+        // Leaf by leaf, in leaf order: its triangles become one block of `tris`. (The leaves
+        // the tree reaches: merged leaves leave their former children behind, unreached.)
+        let mut leaves: Vec<(usize, usize)> = Vec::new();
+        let mut todo = vec![0usize];
+        while let Some(n) = todo.pop() {
+            let node = &bvh2.nodes[n];
+            if node.is_leaf() {
+                leaves.push((node.first_index as usize, node.prim_count as usize));
+            } else {
+                todo.extend([node.first_index as usize, node.first_index as usize + 1]);
+            }
+        }
         leaves.sort_unstable();
         let mut tris = Vec::with_capacity(LEAF_MAX as usize);
         for (first, count) in leaves {
@@ -692,6 +698,52 @@ impl Builder<'_> {
             }
         }
         depth
+    }
+}
+
+/// Turns into one leaf each subtree of `b2` of at most [`LEAF_MAX`] triangles (`is_tri` of a
+/// primitive index) held in one run of its primitive order, where the SAH says so with the
+/// x86 kernels' costs: they test a leaf's triangles in four lanes at once, so a leaf costs the
+/// same for one triangle as for four, and a subtree's leaves (whose boxes the wide node above
+/// tests in parallel) cost the sum of their areas. A node becomes a leaf when its box's area is
+/// at most that sum: the two triangles of a rectangle, whose boxes are both the rectangle's,
+/// become one leaf tested once instead of two (obvhs' SAH, which prices a leaf by its count,
+/// keeps them apart). Leaves only grow; a merged node's former children stay, unreached. The
+/// portable kernel's leaves cost by count, but the tree is the same on every target.
+fn merge_triangle_leaves(b2: &mut obvhs::bvh2::Bvh2, is_tri: impl Fn(u32) -> bool) {
+    let nodes = &mut b2.nodes;
+    if nodes.is_empty() {
+        return;
+    }
+    // A node's cost: the area its leaves are tested over (None: not a leaf of triangles).
+    let mut cost = vec![None::<f32>; nodes.len()];
+    // Post-order from the root: a node is visited again (second) once its children are done.
+    let mut todo = vec![(0usize, false)];
+    while let Some((n, second)) = todo.pop() {
+        let node = nodes[n];
+        if node.is_leaf() {
+            let range = node.first_index..node.first_index + node.prim_count;
+            if range.clone().all(|i| is_tri(b2.primitive_indices[i as usize])) {
+                cost[n] = Some(node.aabb().half_area());
+            }
+            continue;
+        }
+        let (a, b) = (node.first_index as usize, node.first_index as usize + 1);
+        if !second {
+            todo.extend([(n, true), (a, false), (b, false)]);
+            continue;
+        }
+        let (Some(ca), Some(cb)) = (cost[a], cost[b]) else { continue };
+        let (na, nb) = (nodes[a], nodes[b]);
+        let (lo, hi) = if na.first_index < nb.first_index { (na, nb) } else { (nb, na) };
+        let count = na.prim_count + nb.prim_count;
+        let area = node.aabb().half_area();
+        if count <= LEAF_MAX && lo.first_index + lo.prim_count == hi.first_index && area <= ca + cb {
+            nodes[n].prim_count = count;
+            nodes[n].first_index = lo.first_index;
+            cost[n] = Some(area);
+        }
+        // Otherwise it stays an inner node, and so does every node above it (cost None).
     }
 }
 
@@ -1220,6 +1272,47 @@ mod tests {
             flip_normals: false,
             name: "soup".into(),
         }]
+    }
+
+    /// The leaves of a tree: (count, all triangles) for each leaf child reference.
+    fn leaves(accel: &Accel) -> Vec<(u32, bool)> {
+        let mut out = Vec::new();
+        for node in &accel.nodes {
+            for (lane, &c) in node.child.iter().enumerate() {
+                if node.used >> lane & 1 != 0 && c & LEAF != 0 {
+                    out.push((((c >> FIRST_BITS) & 3) + 1, c & TRI_LEAF != 0));
+                }
+            }
+        }
+        out
+    }
+
+    /// A rectangle's two triangles (each one's box is the whole rectangle's) make one leaf,
+    /// tested once; two small triangles far apart stay two leaves (their common box is far
+    /// larger than theirs).
+    #[test]
+    fn small_triangle_subtrees_become_one_leaf_where_the_areas_say() {
+        let rect = |m: Mesh| Shape {
+            geometry: Geometry::Mesh(m),
+            bsdf: 0,
+            light: None,
+            flip_normals: false,
+            name: "rect".into(),
+        };
+        let accel = Accel::build(&[rect(Mesh::rectangle())]);
+        assert_eq!(leaves(&accel), [(2, true)]);
+        let mut far = Mesh::default();
+        for (i, x) in [0.0f32, 100.0].into_iter().enumerate() {
+            far.positions.extend([
+                Vec3::new(x, 0.0, 0.0),
+                Vec3::new(x + 1.0, 0.0, 0.0),
+                Vec3::new(x, 1.0, 0.0),
+            ]);
+            let b = 3 * i as u32;
+            far.tris.push([b, b + 1, b + 2]);
+        }
+        let accel = Accel::build(&[rect(far)]);
+        assert_eq!(leaves(&accel), [(1, true), (1, true)]);
     }
 
     /// Every kernel finds exactly what testing every primitive finds: the same closest hit
