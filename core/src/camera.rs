@@ -42,8 +42,7 @@ impl Camera {
     /// Pinhole ray through film position `pos` (in pixels of the full film).
     #[inline]
     pub fn ray_pinhole(&self, pos: Vec2) -> Ray {
-        let d = self.film_dir(pos).normalize();
-        self.finish(Vec3::ZERO, d)
+        self.finish(Vec3::ZERO, self.film_dir(pos))
     }
 
     /// Thin-lens ray through film position `pos`, lens sample `u` in [0,1)^2.
@@ -52,17 +51,23 @@ impl Camera {
         let focus = self.film_dir(pos) * lens.focus_distance;
         let l = square_to_uniform_disk_concentric(u) * lens.aperture_radius;
         let o = Vec3::new(l.x, l.y, 0.0);
-        self.finish(o, (focus - o).normalize())
+        self.finish(o, focus - o)
     }
 
+    /// The world ray from camera-space origin `o` along `d` (not normalised, `d.z > 0`),
+    /// clipped to the near and far planes. Normalised once, in world space; `to_world` does not
+    /// scale (the loader checks its axes), so the world length stands for the camera-space one
+    /// in the clipping distances: depth z lies z |d| / d.z along the unit direction.
     #[inline]
     fn finish(&self, o: Vec3, d: Vec3) -> Ray {
-        let inv_z = 1.0 / d.z;
+        let v = self.to_world.transform_vector3(d);
+        let len = v.length();
+        let per_depth = len / d.z;
         Ray {
             o: self.to_world.transform_point3(o),
-            d: self.to_world.transform_vector3(d).normalize(),
-            tmin: self.near_clip * inv_z,
-            tmax: self.far_clip * inv_z,
+            d: v * (1.0 / len),
+            tmin: self.near_clip * per_depth,
+            tmax: self.far_clip * per_depth,
         }
     }
 }
