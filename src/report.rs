@@ -88,11 +88,21 @@ impl Ablation {
     fn for_scene(scene: &Scene) -> Vec<Ablation> {
         let t = &scene.techniques;
         let mut all = vec![Ablation::AsScene];
-        if t.mis {
-            all.extend([Ablation::BsdfSamplingOnly, Ablation::LightSamplingOnly]);
+        // Whether light sampling could run with MIS if it sampled every light (without MIS
+        // compensation, a constant sky alone is light-sampled too).
+        let mis_possible = scene.bsdfs.iter().any(Bsdf::is_smooth)
+            && scene
+                .lights
+                .iter()
+                .any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant | LightKind::Envmap));
+        if t.light_sampling {
+            all.push(Ablation::BsdfSamplingOnly);
         }
-        if t.mis && scene.lights.iter().any(Light::is_compensated) {
-            all.push(Ablation::NoMisCompensation);
+        if mis_possible {
+            all.push(Ablation::LightSamplingOnly);
+            if scene.lights.iter().any(Light::is_compensated) {
+                all.push(Ablation::NoMisCompensation);
+            }
         }
         if scene.has_light(LightKind::Envmap) {
             all.push(Ablation::UniformEnvironment);
@@ -149,10 +159,10 @@ impl Ablation {
             }
             // Light sampling alone must sample every direction: no MIS compensation.
             Ablation::LightSamplingOnly => {
+                s.disable_mis_compensation();
                 s.techniques.mis = false;
-                s.set_mis_compensation(false);
             }
-            Ablation::NoMisCompensation => s.set_mis_compensation(false),
+            Ablation::NoMisCompensation => s.disable_mis_compensation(),
             Ablation::UniformEnvironment => {
                 for l in &mut s.lights {
                     if let Light::Envmap(e) = l {
@@ -403,6 +413,15 @@ mod tests {
         let textured = Ablation::for_scene(&scene("textured.xml"));
         assert!(FilterType::ALL.iter().all(|&f| textured.contains(&TextureFilter(f))), "{textured:?}");
         assert!(!textured.contains(&DiffuseInsteadOfHair));
+        // Its only light is a constant, left to BSDF sampling: "BSDF sampling only" would be
+        // the scene itself; without compensation the constant is light-sampled, with MIS.
+        assert!(!textured.contains(&BsdfSamplingOnly), "{textured:?}");
+        assert!(textured.contains(&LightSamplingOnly) && textured.contains(&NoMisCompensation));
+        let mut t = scene("textured.xml");
+        assert!(!t.techniques.light_sampling && !t.techniques.mis);
+        NoMisCompensation.apply(&mut t);
+        assert!(t.techniques.light_sampling && t.techniques.mis);
+        assert!(t.describe().to_string().contains("light sampling: constant"));
 
         let mut s = scene("hair.xml");
         let before = s.techniques;

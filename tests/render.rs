@@ -113,6 +113,7 @@ fn a_diffuse_plane_under_a_constant_reads_albedo_times_radiance() {
     let expected = [0.35f32, 0.5, 0.65];
     let mut s = load_str(xml).unwrap();
     assert!(s.lights[0].is_compensated() && s.sampled_lights.is_empty());
+    assert!(!s.techniques.light_sampling && !s.techniques.mis);
     let (acc, st) = render(&s, 16, 1);
     assert_eq!(st.shadow_rays, 0, "nothing to light-sample");
     let img = acc.develop();
@@ -121,8 +122,9 @@ fn a_diffuse_plane_under_a_constant_reads_albedo_times_radiance() {
             assert!((p[c] / expected[c] - 1.0).abs() < 1e-5, "{p:?} vs {expected:?}");
         }
     }
-    s.set_mis_compensation(false);
+    s.disable_mis_compensation();
     assert_eq!(s.sampled_lights, [0]);
+    assert!(s.techniques.light_sampling && s.techniques.mis);
     let (acc, st) = render(&s, 16, 1);
     assert!(st.shadow_rays > 0);
     let img = acc.develop();
@@ -275,7 +277,7 @@ fn stages_absent_from_the_plan_never_run() {
     assert!(text.contains("light sampling: area, point\n"), "{text}");
     assert!(text.contains("constant emitter: left to BSDF sampling"), "{text}");
     // Without compensation (furnace report's ablation) light sampling picks it too.
-    small.set_mis_compensation(false);
+    small.disable_mis_compensation();
     let (_, st) = render(&small, 2, 0);
     assert!(st.light_samples_of(LightKind::Constant) > 0);
     let text = small.describe().to_string();
@@ -458,16 +460,24 @@ fn rough_glass_sphere_in_a_white_furnace_loses_only_single_scattering_energy() {
             </shape>
         </scene>"#
         );
-        let s = load_str(&xml).unwrap();
-        let (acc, _) = render(&s, 64, 2);
-        assert_eq!(acc.dropped.total(), 0);
-        let img = acc.develop();
-        let mean = img.data.iter().map(|p| p.x as f64).sum::<f64>() / img.data.len() as f64;
-        assert!(
-            (mean / mitsuba - 1.0).abs() < 0.01 && mean < 1.01,
-            "{dist} {alpha}: furnace mean {mean}, Mitsuba {mitsuba}"
-        );
-        assert!(img.data.iter().all(|p| p.is_finite() && p.min_element() >= 0.0));
+        // As loaded (the constant left to BSDF sampling), and with the constant light-sampled
+        // too (NEE + MIS through the glass's value and pdf).
+        for compensated in [true, false] {
+            let mut s = load_str(&xml).unwrap();
+            if !compensated {
+                s.disable_mis_compensation();
+            }
+            let (acc, st) = render(&s, 64, 2);
+            assert_eq!(st.shadow_rays > 0, !compensated);
+            assert_eq!(acc.dropped.total(), 0);
+            let img = acc.develop();
+            let mean = img.data.iter().map(|p| p.x as f64).sum::<f64>() / img.data.len() as f64;
+            assert!(
+                (mean / mitsuba - 1.0).abs() < 0.01 && mean < 1.01,
+                "{dist} {alpha}, compensated {compensated}: furnace mean {mean}, Mitsuba {mitsuba}"
+            );
+            assert!(img.data.iter().all(|p| p.is_finite() && p.min_element() >= 0.0));
+        }
     }
 }
 
@@ -641,26 +651,36 @@ fn hair_bsdf_in_a_white_furnace_reads_one() {
             </shape>
         </scene>"#
         );
-        let s = load_str(&xml).unwrap();
-        assert!(s.bsdfs.iter().any(|b| matches!(b, furnace_core::bsdf::Bsdf::Hair(_))));
-        let img = render(&s, 32, 3).0.develop();
-        if expect_one {
-            let mean = img.data.iter().map(|p| p.y as f64).sum::<f64>() / img.data.len() as f64;
-            assert!((mean - 1.0).abs() < 0.01, "mean {mean}");
-            assert!(img.data.iter().all(|p| (p.y - 1.0).abs() < 0.15), "a pixel far from 1");
-        }
-        if !expect_one {
-            let centre = img.get(8, 8);
-            assert!(centre.max_element() < 0.9 && centre.min_element() > 0.0, "{centre}");
+        // As loaded (the constant left to BSDF sampling), and light-sampled too (NEE + MIS
+        // through the hair's value and pdf).
+        for compensated in [true, false] {
+            let mut s = load_str(&xml).unwrap();
+            assert!(s.bsdfs.iter().any(|b| matches!(b, furnace_core::bsdf::Bsdf::Hair(_))));
+            if !compensated {
+                s.disable_mis_compensation();
+            }
+            let (acc, st) = render(&s, 32, 3);
+            assert_eq!(st.shadow_rays > 0, !compensated);
+            let img = acc.develop();
+            if expect_one {
+                let mean = img.data.iter().map(|p| p.y as f64).sum::<f64>() / img.data.len() as f64;
+                assert!((mean - 1.0).abs() < 0.01, "compensated {compensated}: mean {mean}");
+                assert!(img.data.iter().all(|p| (p.y - 1.0).abs() < 0.15), "a pixel far from 1");
+            }
+            if !expect_one {
+                let centre = img.get(8, 8);
+                assert!(centre.max_element() < 0.9 && centre.min_element() > 0.0, "{centre}");
+            }
         }
     }
 }
 
 /// A single fibre (linearcurve, varying radius) with the hair BSDF and no absorption in a
 /// white environment of radiance 1: the fibre conserves energy and no path is lost, so the
-/// image (fibre and background) reads 1. With NEE + MIS: mean within 1%, every pixel within
-/// 15% at 64 spp. With BSDF sampling alone every sample's weight is 1 (within 1e-3 per
-/// bounce), so every pixel reads 1 within 0.5%.
+/// image (fibre and background) reads 1. With the constant light-sampled too (NEE + MIS,
+/// without MIS compensation): mean within 1%, every pixel within 15% at 64 spp. As loaded the
+/// constant is left to BSDF sampling alone, where every sample's weight is 1 (within 1e-3 per
+/// bounce), so every pixel reads 1 within 0.5%; and so with light sampling switched off.
 #[test]
 fn a_white_fibre_in_a_white_environment_reads_one_on_every_pixel() {
     let dir = scratch("fibre");
@@ -677,19 +697,27 @@ fn a_white_fibre_in_a_white_environment_reads_one_on_every_pixel() {
         <shape type="linearcurve"><string name="filename" value="fibre.txt"/>
             <bsdf type="hair"><rgb name="sigma_a" value="0"/></bsdf></shape>
     </scene>"#;
-    let mut s = furnace_core::Scene::load_str(xml, &dir.join("fibre.xml"), &[]).unwrap();
-    let img = render(&s, 64, 5).0.develop();
+    let load = || furnace_core::Scene::load_str(xml, &dir.join("fibre.xml"), &[]).unwrap();
+    let mut s = load();
+    s.disable_mis_compensation();
+    let (acc, st) = render(&s, 64, 5);
+    assert!(st.shadow_rays > 0);
+    let img = acc.develop();
     let mean = img.data.iter().map(|p| p.y as f64).sum::<f64>() / img.data.len() as f64;
     assert!((mean - 1.0).abs() < 0.01, "mean {mean}");
     assert!(img.data.iter().all(|p| (p.y - 1.0).abs() < 0.15));
 
-    s.techniques.light_sampling = false;
-    s.techniques.mis = false;
-    let (acc, st) = render(&s, 16, 5);
-    assert!(st.bsdf_samples > 0 && st.shadow_rays == 0);
-    let img = acc.develop();
-    for (i, p) in img.data.iter().enumerate() {
-        assert!((p.y - 1.0).abs() < 5e-3, "pixel {i}: {p}");
+    let loaded = load();
+    let mut off = load();
+    off.techniques.light_sampling = false;
+    off.techniques.mis = false;
+    for s in [&loaded, &off] {
+        let (acc, st) = render(s, 16, 5);
+        assert!(st.bsdf_samples > 0 && st.shadow_rays == 0);
+        let img = acc.develop();
+        for (i, p) in img.data.iter().enumerate() {
+            assert!((p.y - 1.0).abs() < 5e-3, "pixel {i}: {p}");
+        }
     }
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -755,13 +783,23 @@ fn equal_iors_in_smooth_dielectric_and_plastic_agree_with_mitsuba() {
     };
     let (acc, _) = render(&load_str(&scene("dielectric")).unwrap(), 16, 0);
     assert!(acc.develop().data.iter().all(|p| (p.x - 1.0).abs() < 1e-5), "the sphere must vanish");
-    let img = render(&load_str(&scene("plastic")).unwrap(), 256, 0).0.develop();
-    let mean = img.data.iter().map(|p| p.x as f64).sum::<f64>() / img.data.len() as f64;
-    let centre =
-        [(7, 7), (8, 7), (7, 8), (8, 8)].iter().map(|&(x, y)| img.data[y * 16 + x].x as f64).sum::<f64>()
-            / 4.0;
-    assert!((mean / 0.8766 - 1.0).abs() < 0.01, "mean {mean} against Mitsuba's 0.8766");
-    assert!((centre / 0.4983 - 1.0).abs() < 0.02, "centre {centre} against Mitsuba's 0.4983");
+    // The constant left to BSDF sampling (as loaded) and light-sampled too.
+    for compensated in [true, false] {
+        let mut s = load_str(&scene("plastic")).unwrap();
+        if !compensated {
+            s.disable_mis_compensation();
+        }
+        let img = render(&s, 256, 0).0.develop();
+        let mean = img.data.iter().map(|p| p.x as f64).sum::<f64>() / img.data.len() as f64;
+        let centre =
+            [(7, 7), (8, 7), (7, 8), (8, 8)].iter().map(|&(x, y)| img.data[y * 16 + x].x as f64).sum::<f64>()
+                / 4.0;
+        assert!((mean / 0.8766 - 1.0).abs() < 0.01, "{compensated}: mean {mean} against Mitsuba's 0.8766");
+        assert!(
+            (centre / 0.4983 - 1.0).abs() < 0.02,
+            "{compensated}: centre {centre} against Mitsuba's 0.4983"
+        );
+    }
 }
 
 /// The BVH's box-test kernel (AVX2, SSE or plain code, chosen by the CPU) changes speed, never

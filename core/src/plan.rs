@@ -6,7 +6,8 @@
 //! [`PlanDescription`], what the render does in words, for people (`furnace render --plan`,
 //! the log, a job's status). Settings the scene states have one home elsewhere, which both
 //! read: `max_depth`, `rr_depth` and `hide_emitters` in `Scene::integrator`, the lens in
-//! `Camera::lens` (`None`: a pinhole), MIS compensation in each environment map.
+//! `Camera::lens` (`None`: a pinhole), MIS compensation in each environment map and constant
+//! (`Scene::sampled_lights` lists the lights light sampling picks among).
 
 use std::fmt;
 
@@ -20,12 +21,13 @@ use crate::texture::{FilterType, Texture};
 /// The techniques the path tracer runs for a scene.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Techniques {
-    /// Next-event estimation: some light can be sampled and some BSDF is not purely specular.
+    /// Next-event estimation: some light is sampled (`Scene::sampled_lights`: not a
+    /// MIS-compensated constant) and some BSDF is not purely specular.
     pub light_sampling: bool,
     /// MIS (power heuristic) between BSDF and light sampling: light sampling of lights that
     /// BSDF-sampled rays can also hit (area, constant and envmap lights). With light sampling
     /// but without MIS, emission that BSDF-sampled rays find is left to light sampling (only
-    /// reachable as an ablation: derived plans have MIS whenever such lights exist).
+    /// reachable as an ablation: derived plans have MIS whenever such lights are sampled).
     pub mis: bool,
     /// Rays that leave the scene look up lights at infinity.
     pub escaped_rays_lookup: bool,
@@ -36,11 +38,10 @@ pub struct Techniques {
 
 impl Techniques {
     pub fn derive(scene: &Scene) -> Techniques {
-        let light_sampling = !scene.lights.is_empty() && scene.bsdfs.iter().any(Bsdf::is_smooth);
+        let sampled = || scene.sampled_lights.iter().map(|&k| &scene.lights[k as usize]);
+        let light_sampling = sampled().next().is_some() && scene.bsdfs.iter().any(Bsdf::is_smooth);
         let mis = light_sampling
-            && scene
-                .lights
-                .iter()
+            && sampled()
                 .any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant | LightKind::Envmap));
         Techniques {
             light_sampling,
@@ -112,13 +113,11 @@ impl PlanDescription {
                     kinds.push(name);
                 }
             }
-            if !kinds.is_empty() {
-                kinds.sort_by_key(|n| LightKind::ALL.iter().position(|k| k.name() == *n));
-                stages.push(format!("light sampling: {}", kinds.join(", ")));
-            }
-            if t.mis && scene.lights.iter().any(|l| matches!(l, Light::Constant { compensated: true, .. })) {
-                stages.push("constant emitter: left to BSDF sampling (MIS-compensated)".into());
-            }
+            kinds.sort_by_key(|n| LightKind::ALL.iter().position(|k| k.name() == *n));
+            stages.push(format!("light sampling: {}", kinds.join(", ")));
+        }
+        if scene.lights.iter().any(|l| matches!(l, Light::Constant { compensated: true, .. })) {
+            stages.push("constant emitter: left to BSDF sampling (MIS-compensated)".into());
         }
         if t.mis {
             stages.push("MIS (power heuristic): BSDF sampling x light sampling".into());

@@ -166,13 +166,15 @@ impl Scene {
         PlanDescription::of(self)
     }
 
-    /// MIS compensation of every environment map and constant on or off (`furnace report`'s
-    /// ablations: it is on as loaded), and with it the lights light sampling picks among.
-    pub fn set_mis_compensation(&mut self, on: bool) {
+    /// Turns MIS compensation off in every environment map and constant (`furnace report`'s
+    /// ablations), and derives again what depends on it: the lights light sampling picks
+    /// among and the techniques.
+    pub fn disable_mis_compensation(&mut self) {
         for l in &mut self.lights {
-            l.set_mis_compensation(on);
+            l.set_mis_compensation(false);
         }
         self.sampled_lights = sampled_lights(&self.lights);
+        self.techniques = Techniques::derive(self);
     }
 
     /// Whether the scene has a light of this kind.
