@@ -93,48 +93,64 @@ fn white_furnace_closed_emitters_return_one_over_one_minus_albedo() {
     }
 }
 
-/// A diffuse plane (albedo 0.5) under a constant emitter, direct light only. MIS-compensated
-/// (as loaded), the constant is left to BSDF sampling, whose cosine-weighted samples each carry
-/// exactly albedo x radiance: every pixel reads that to rounding. Without compensation light
-/// sampling picks the sphere uniformly too: the same mean, with noise.
+/// A diffuse plane (albedo 0.5) under a constant emitter, and under an environment map whose
+/// image is constant, direct light only. MIS-compensated (as loaded), light sampling leaves
+/// either to BSDF sampling, whose cosine-weighted samples each carry exactly albedo x radiance:
+/// every pixel reads that to rounding. Without compensation light sampling picks the sphere
+/// too: the same mean, with noise.
 #[test]
 fn a_diffuse_plane_under_a_constant_reads_albedo_times_radiance() {
-    let xml = r#"<scene version="3.0.0">
-        <integrator type="path"><integer name="max_depth" value="2"/></integrator>
-        <sensor type="perspective"><float name="fov" value="30"/>
-            <transform name="to_world"><lookat origin="0, 5, 0" target="0, 0, 0" up="0, 0, 1"/></transform>
-            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
-                <rfilter type="box"/></film>
-        </sensor>
-        <emitter type="constant"><rgb name="radiance" value="0.7, 1, 1.3"/></emitter>
-        <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="100"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
-    </scene>"#;
+    let dir = scratch("constant-sky");
+    let radiance = glam::Vec3::new(0.7, 1.0, 1.3);
+    let sky = furnace_core::Image { width: 8, height: 4, data: vec![radiance; 32] };
+    sky.write_exr(&dir.join("sky.exr")).unwrap();
     let expected = [0.35f32, 0.5, 0.65];
-    let mut s = load_str(xml).unwrap();
-    assert!(s.lights[0].is_compensated() && s.sampled_lights.is_empty());
-    assert!(!s.techniques.light_sampling && !s.techniques.mis);
-    let (acc, st) = render(&s, 16, 1);
-    assert_eq!(st.shadow_rays, 0, "nothing to light-sample");
-    let img = acc.develop();
-    for p in &img.data {
+    for emitter in [
+        r#"<emitter type="constant"><rgb name="radiance" value="0.7, 1, 1.3"/></emitter>"#,
+        r#"<emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>"#,
+    ] {
+        let xml = format!(
+            r#"<scene version="3.0.0">
+            <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+            <sensor type="perspective"><float name="fov" value="30"/>
+                <transform name="to_world"><lookat origin="0, 5, 0" target="0, 0, 0" up="0, 0, 1"/></transform>
+                <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
+                    <rfilter type="box"/></film>
+            </sensor>
+            {emitter}
+            <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="100"/></transform>
+                <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+        </scene>"#
+        );
+        let load = || furnace_core::Scene::load_str(&xml, &dir.join("plane.xml"), &[]).unwrap();
+        let s = load();
+        assert!(s.lights[0].is_compensated() && s.sampled_lights.is_empty(), "{emitter}");
+        assert!(!s.techniques.light_sampling && !s.techniques.mis);
+        assert!(s.describe().to_string().contains("left to BSDF sampling"));
+        let (acc, st) = render(&s, 16, 1);
+        assert_eq!(st.shadow_rays, 0, "nothing to light-sample");
+        let img = acc.develop();
+        for p in &img.data {
+            for c in 0..3 {
+                assert!((p[c] / expected[c] - 1.0).abs() < 1e-5, "{emitter}: {p:?} vs {expected:?}");
+            }
+        }
+        let mut s = load();
+        s.disable_mis_compensation();
+        assert_eq!(s.sampled_lights, [0]);
+        assert!(s.techniques.light_sampling && s.techniques.mis);
+        let (acc, st) = render(&s, 16, 1);
+        assert!(st.shadow_rays > 0);
+        let img = acc.develop();
+        let n = img.data.len() as f64;
         for c in 0..3 {
-            assert!((p[c] / expected[c] - 1.0).abs() < 1e-5, "{p:?} vs {expected:?}");
+            let mean = img.data.iter().map(|p| p[c] as f64).sum::<f64>() / n;
+            let spread = img.data.iter().map(|p| (p[c] as f64 / mean - 1.0).abs()).fold(0.0, f64::max);
+            assert!((mean / expected[c] as f64 - 1.0).abs() < 0.01, "{emitter}: channel {c}: mean {mean}");
+            assert!(spread > 1e-3, "{emitter}: channel {c}: uniform light sampling without noise?");
         }
     }
-    s.disable_mis_compensation();
-    assert_eq!(s.sampled_lights, [0]);
-    assert!(s.techniques.light_sampling && s.techniques.mis);
-    let (acc, st) = render(&s, 16, 1);
-    assert!(st.shadow_rays > 0);
-    let img = acc.develop();
-    let n = img.data.len() as f64;
-    for c in 0..3 {
-        let mean = img.data.iter().map(|p| p[c] as f64).sum::<f64>() / n;
-        let spread = img.data.iter().map(|p| (p[c] as f64 / mean - 1.0).abs()).fold(0.0, f64::max);
-        assert!((mean / expected[c] as f64 - 1.0).abs() < 0.01, "channel {c}: mean {mean}");
-        assert!(spread > 1e-3, "channel {c}: uniform light sampling without noise?");
-    }
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// A diffuse plane (albedo 0.5) under the sun/sky map, direct light only: every pixel reads

@@ -162,19 +162,18 @@ impl PlanDescription {
         if t.escaped_rays_lookup {
             stages.push("escaped rays: infinite lights".into());
         }
-        let envmaps: Vec<bool> = scene
-            .lights
-            .iter()
-            .filter_map(|l| match l {
-                Light::Envmap(e) => Some(e.compensated()),
-                _ => None,
-            })
-            .collect();
-        if !envmaps.is_empty() {
+        let envmaps =
+            || scene.lights.iter().filter_map(|l| if let Light::Envmap(e) = l { Some(e) } else { None });
+        if envmaps().any(|e| e.is_sampled()) {
             stages.push(format!(
                 "environment importance sampling (piecewise-bilinear luminance x solid angle, hierarchical warp{})",
-                if t.mis && envmaps.contains(&true) { ", MIS-compensated" } else { "" }
+                if t.mis && envmaps().any(|e| e.is_sampled() && e.compensated()) { ", MIS-compensated" } else { "" }
             ));
+        }
+        if envmaps().any(|e| !e.is_sampled()) {
+            stages.push(
+                "environment map: left to BSDF sampling (black, or constant and MIS-compensated)".into(),
+            );
         }
         let i = &scene.integrator;
         stages.push(format!("Russian roulette from depth {}", i.rr_depth));

@@ -27,8 +27,9 @@
 //! MIS compensation (Karlik et al. 2019): where a map is lit no more than its average, BSDF
 //! sampling already does well, so light sampling can leave those directions to it. The
 //! compensated density subtracts the map's mean luminance (over solid angle) from every
-//! vertex's luminance, clamped at zero; if nothing is left (a constant map), the density is
-//! not compensated. It is only unbiased beside BSDF sampling with MIS (every non-delta BSDF
+//! vertex's luminance, clamped at zero; if nothing is left (a constant map), light sampling
+//! leaves the whole map to BSDF sampling, as it does a `constant` emitter (its density is
+//! empty: no samples, pdf 0). It is only unbiased beside BSDF sampling with MIS (every non-delta BSDF
 //! samples all directions it reflects into), so the integrator's light-sampling-only ablation
 //! builds the map without it.
 
@@ -136,14 +137,17 @@ impl EnvMap {
         // What the grid's total would be without compensation (its integral over du dv, times
         // nu nv).
         let full_total = integral * unit * (nu * nv) as f64 / (2.0 * PI64 * PI64);
-        let compensated = (compensate && integral > 0.0)
-            .then(|| build((integral / (4.0 * PI64) * unit) as f32))
-            // Nothing left but rounding (a constant map): sample the map as it is.
-            .filter(|c| c.total > 1e-6 * full_total);
-        let (warp, compensated) = match compensated {
-            Some(c) => (c, true),
-            None => (build(0.0), false),
-        };
+        let (warp, compensated) =
+            match (compensate && integral > 0.0).then(|| build((integral / (4.0 * PI64) * unit) as f32)) {
+                Some(c) if c.total > 1e-6 * full_total => (c, true),
+                // Nothing left but rounding (a constant map): an empty density, all of the map
+                // left to BSDF sampling.
+                Some(mut c) => {
+                    c.total = 0.0;
+                    (c, true)
+                }
+                None => (build(0.0), false),
+            };
         EnvMap {
             bitmap,
             scale,
@@ -191,6 +195,12 @@ impl EnvMap {
     /// Whether light sampling uses the MIS-compensated density.
     pub fn compensated(&self) -> bool {
         self.compensated
+    }
+
+    /// Whether light sampling has anything to sample: not a black map, nor a constant one
+    /// under MIS compensation (both are left to BSDF sampling).
+    pub fn is_sampled(&self) -> bool {
+        self.warp.total > 0.0
     }
 
     /// The map's luminance integral over the sphere, texel by texel with their exact solid
@@ -824,7 +834,8 @@ mod tests {
 
     /// Sampling follows the pdf (chi-square), and the pdf integrates to one, for a tiny sun
     /// (histogram cells concentrated around it), a 1 x 1 map, maps with black rows and a
-    /// constant map; with and without MIS compensation, for both lookups.
+    /// constant map (compensated, these two have nothing to sample); with and without MIS
+    /// compensation, for both lookups.
     #[test]
     fn sampled_directions_follow_the_pdf() {
         let rot = Mat3::from_rotation_x(0.3);
@@ -863,13 +874,21 @@ mod tests {
                 let env = EnvMap::new(Arc::new(black_rows.clone()), 2.0, rot, filter, compensate);
                 chi2_of(&env, Grid::uniform(24, 24), &name("black rows"));
                 chi2_uv(&env, 48, 24, &name("black rows, (u, v) bins"));
+                // Constant maps: compensated, nothing is left to light sampling.
                 let env = EnvMap::new(Arc::new(one.clone()), 1.0, rot, filter, compensate);
-                assert!(!env.compensated(), "a constant map has nothing to compensate");
-                chi2_of(&env, Grid::uniform(12, 12), &name("1 x 1"));
-                chi2_uv(&env, 16, 8, &name("1 x 1, (u, v) bins"));
+                assert_eq!(env.compensated(), compensate);
+                assert_eq!(env.is_sampled(), !compensate);
+                if compensate {
+                    assert!(env.sample(Vec2::new(0.3, 0.6)).is_none() && env.pdf(Vec3::Y) == 0.0);
+                } else {
+                    chi2_of(&env, Grid::uniform(12, 12), &name("1 x 1"));
+                    chi2_uv(&env, 16, 8, &name("1 x 1, (u, v) bins"));
+                }
                 let env = EnvMap::new(Arc::new(constant.clone()), 1.0, rot, filter, compensate);
-                assert!(!env.compensated());
-                chi2_of(&env, Grid::uniform(12, 12), &name("constant"));
+                assert_eq!(env.is_sampled(), !compensate);
+                if !compensate {
+                    chi2_of(&env, Grid::uniform(12, 12), &name("constant"));
+                }
             }
         }
     }

@@ -156,10 +156,15 @@ impl Light {
         Light::Area { shape: shape_idx, radiance, cdf, area: acc }
     }
 
-    /// Whether light sampling picks this light: not a MIS-compensated constant, which it
+    /// Whether light sampling picks this light: not a MIS-compensated constant, nor an
+    /// environment map with nothing to sample (black, or constant and compensated), which it
     /// leaves to BSDF sampling.
     pub fn is_sampled(&self) -> bool {
-        !matches!(self, Light::Constant { compensated: true, .. })
+        match self {
+            Light::Constant { compensated, .. } => !compensated,
+            Light::Envmap(e) => e.is_sampled(),
+            _ => true,
+        }
     }
 
     /// MIS compensation of an environment map or a constant on or off (see each).
