@@ -37,8 +37,9 @@ pub fn li(
     if settings.max_depth == 0 {
         return Rgb::ZERO; // Mitsuba: max_depth 0 renders nothing, not even emitters
     }
-    // Light sampling picks among `sampled_lights`: a MIS-compensated constant is left to BSDF
-    // sampling (its light pdf is 0, so what BSDF sampling finds of it weighs 1).
+    // Light sampling picks among `sampled_lights`: a MIS-compensated constant (or constant
+    // map) is left to BSDF sampling (its light pdf is 0, so what BSDF sampling finds of it
+    // weighs 1), and a black map has nothing to sample.
     let n_lights = scene.sampled_lights.len();
     let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
     // Whether light sampling picks a light. The light (of at most REUSE_LIGHTS), and an area
