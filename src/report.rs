@@ -90,11 +90,8 @@ impl Ablation {
         let mut all = vec![Ablation::AsScene];
         // Whether light sampling could run with MIS if it sampled every light (without MIS
         // compensation, a constant sky alone is light-sampled too).
-        let mis_possible = scene.bsdfs.iter().any(Bsdf::is_smooth)
-            && scene
-                .lights
-                .iter()
-                .any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant | LightKind::Envmap));
+        let mis_possible =
+            scene.bsdfs.iter().any(Bsdf::is_smooth) && scene.lights.iter().any(|l| l.kind().is_hit_by_rays());
         if t.light_sampling {
             all.push(Ablation::BsdfSamplingOnly);
         }

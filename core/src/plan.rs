@@ -40,9 +40,7 @@ impl Techniques {
     pub fn derive(scene: &Scene) -> Techniques {
         let sampled = || scene.sampled_lights.iter().map(|&k| &scene.lights[k as usize]);
         let light_sampling = sampled().next().is_some() && scene.bsdfs.iter().any(Bsdf::is_smooth);
-        let mis = light_sampling
-            && sampled()
-                .any(|l| matches!(l.kind(), LightKind::Area | LightKind::Constant | LightKind::Envmap));
+        let mis = light_sampling && sampled().any(|l| l.kind().is_hit_by_rays());
         Techniques {
             light_sampling,
             mis,
@@ -106,14 +104,11 @@ impl PlanDescription {
             "intersect (8-wide BVH)".to_string(),
         ];
         if t.light_sampling {
-            let mut kinds: Vec<&str> = Vec::new();
-            for &k in &scene.sampled_lights {
-                let name = scene.lights[k as usize].kind().name();
-                if !kinds.contains(&name) {
-                    kinds.push(name);
-                }
-            }
-            kinds.sort_by_key(|n| LightKind::ALL.iter().position(|k| k.name() == *n));
+            let kinds: Vec<&str> = LightKind::ALL
+                .into_iter()
+                .filter(|&k| scene.sampled_lights.iter().any(|&i| scene.lights[i as usize].kind() == k))
+                .map(LightKind::name)
+                .collect();
             stages.push(format!("light sampling: {}", kinds.join(", ")));
         }
         if scene.lights.iter().any(|l| matches!(l, Light::Constant { compensated: true, .. })) {

@@ -36,6 +36,12 @@ impl LightKind {
         LightKind::Envmap,
     ];
 
+    /// Whether rays that BSDF sampling traces can find this kind of light (area lights and
+    /// lights at infinity, not the delta ones): what MIS weighs against light sampling.
+    pub fn is_hit_by_rays(self) -> bool {
+        matches!(self, LightKind::Area | LightKind::Constant | LightKind::Envmap)
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             LightKind::Area => "area",
@@ -167,11 +173,11 @@ impl Light {
         }
     }
 
-    /// MIS compensation of an environment map or a constant on or off (see each).
-    pub fn set_mis_compensation(&mut self, on: bool) {
+    /// Turns MIS compensation of an environment map or a constant off (see each).
+    pub fn disable_mis_compensation(&mut self) {
         match self {
-            Light::Envmap(e) => *e = std::sync::Arc::new(e.with_compensation(on)),
-            Light::Constant { compensated, .. } => *compensated = on,
+            Light::Envmap(e) => *e = std::sync::Arc::new(e.with_compensation(false)),
+            Light::Constant { compensated, .. } => *compensated = false,
             _ => {}
         }
     }

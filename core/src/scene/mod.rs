@@ -171,7 +171,7 @@ impl Scene {
     /// among and the techniques.
     pub fn disable_mis_compensation(&mut self) {
         for l in &mut self.lights {
-            l.set_mis_compensation(false);
+            l.disable_mis_compensation();
         }
         self.sampled_lights = sampled_lights(&self.lights);
         self.techniques = Techniques::derive(self);
