@@ -39,14 +39,15 @@ use std::sync::Arc;
 use glam::{Mat3, Vec2, Vec3};
 
 use crate::math::{fast_atan2, sin_cos_2pi, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
-use crate::texture::{Bitmap, FilterType, WrapMode};
+use crate::texture::{Bitmap, FilterType};
 
 /// The largest f64 below 1: where a rescaled sample number must stay.
 const ONE_BELOW: f64 = 1.0 - f64::EPSILON / 2.0;
 
 #[derive(Clone, Debug)]
 pub struct EnvMap {
-    bitmap: Arc<Bitmap>,
+    /// The map's texels, bordered for the lookup ([`Bordered`]).
+    texels: Bordered,
     scale: f32,
     /// World -> emitter frame (a rotation) and back.
     to_local: Mat3,
@@ -149,7 +150,7 @@ impl EnvMap {
                 None => (build(0.0), false),
             };
         EnvMap {
-            bitmap,
+            texels: Bordered::new(&bitmap),
             scale,
             to_local: to_world.transpose(),
             to_world,
@@ -180,14 +181,17 @@ impl EnvMap {
             FilterType::Nearest => (4 * w * h, 4 * w * h + 4 * (nv + 1)),
             _ => (4 * (nu + 1) * (nv + 1), 4 * (nu + 1) * (nv + 1)),
         };
-        // Texel luminance (while the grid is made), the grid, the corners being built, and
-        // the levels (counted half again: a level and the one made from it are held together).
-        (4 * w * h + grid + corners + levels + levels / 2, corners + levels)
+        // The bordered texels, texel luminance (while the grid is made), the grid, the corners
+        // being built, and the levels (counted half again: a level and the one made from it
+        // are held together).
+        let bordered = 12 * (w + 2) * (h + 2);
+        (bordered + 4 * w * h + grid + corners + levels + levels / 2, bordered + corners + levels)
     }
 
     /// The same map with MIS compensation on or off.
     pub fn with_compensation(&self, on: bool) -> EnvMap {
-        let mut e = EnvMap::new(self.bitmap.clone(), self.scale, self.to_world, self.filter, on);
+        let bitmap = Arc::new(self.texels.bitmap());
+        let mut e = EnvMap::new(bitmap, self.scale, self.to_world, self.filter, on);
         e.uniform = self.uniform;
         e
     }
@@ -222,15 +226,12 @@ impl EnvMap {
         (Vec2::new(u, fast_atan2(sin_t, l.y) / PI), sin_t)
     }
 
-    /// The lookup at (u, v), scaled.
+    /// The lookup at (u, v), scaled: bilinear (u repeats, v is clamped) or nearest.
+    #[inline]
     fn lookup(&self, uv: Vec2) -> Rgb {
-        let (w, h) = (self.bitmap.width, self.bitmap.height);
-        let b = &self.bitmap;
         let c = match self.filter {
-            FilterType::Nearest => {
-                b.texel(((uv.x * w as f32) as usize).min(w - 1), ((uv.y * h as f32) as usize).min(h - 1))
-            }
-            _ => b.bilinear_wrapped(uv, WrapMode::Repeat, WrapMode::Clamp),
+            FilterType::Nearest => self.texels.nearest(uv),
+            _ => self.texels.bilinear(uv),
         };
         c * self.scale
     }
@@ -316,6 +317,99 @@ impl EnvMap {
     #[inline]
     pub fn radiance_at(&self, uv: Vec2) -> Rgb {
         self.lookup(uv)
+    }
+}
+
+/// An environment map's texels with a border of one texel, (w + 2) x (h + 2): u repeats, so
+/// column 0 holds the last column and column w + 1 the first; v is clamped, so row 0 repeats
+/// the first row and row h + 1 the last. A bilinear lookup then reads its four texels at
+/// fixed offsets, with no wrapping and no clamping per texel: it is
+/// [`Bitmap::bilinear_wrapped`] with `Repeat` in u and `Clamp` in v, bit for bit.
+#[derive(Clone, Debug)]
+struct Bordered {
+    w: usize,
+    h: usize,
+    /// w and h as f32.
+    fw: f32,
+    fh: f32,
+    /// Both sides below 2^23, where f32 holds every px = u w - 0.5 of the unit square within
+    /// [-0.5, w - 0.5] (and py likewise): [`Bordered::bilinear`]'s fast path.
+    fast: bool,
+    texels: Vec<Rgb>,
+}
+
+impl Bordered {
+    fn new(b: &Bitmap) -> Bordered {
+        let (w, h) = (b.width, b.height);
+        let texels = (0..h + 2)
+            .flat_map(|r| {
+                let y = r.saturating_sub(1).min(h - 1);
+                (0..w + 2).map(move |c| b.texel((c + w - 1) % w, y))
+            })
+            .collect();
+        Bordered { w, h, fw: w as f32, fh: h as f32, fast: w < 1 << 23 && h < 1 << 23, texels }
+    }
+
+    /// The map without its border.
+    fn bitmap(&self) -> Bitmap {
+        let texels = (0..self.h).flat_map(|y| (0..self.w).map(move |x| self.texel(x, y))).collect();
+        Bitmap { width: self.w, height: self.h, texels }
+    }
+
+    /// Texel (x, y) of the map.
+    #[inline]
+    fn texel(&self, x: usize, y: usize) -> Rgb {
+        self.texels[(y + 1) * (self.w + 2) + x + 1]
+    }
+
+    /// Nearest lookup at (u, v) in [0, 1]^2, as [`EnvMap::lookup`] has always done it.
+    #[inline]
+    fn nearest(&self, uv: Vec2) -> Rgb {
+        let (w, h) = (self.w, self.h);
+        self.texel(((uv.x * w as f32) as usize).min(w - 1), ((uv.y * h as f32) as usize).min(h - 1))
+    }
+
+    /// Bilinear lookup at (u, v), texel centres at ((i + 0.5) / w, (j + 0.5) / h).
+    #[inline]
+    fn bilinear(&self, uv: Vec2) -> Rgb {
+        let px = uv.x * self.fw - 0.5;
+        let py = uv.y * self.fh - 0.5;
+        // (u, v) in the unit square, as every direction's is: px in [-0.5, w - 0.5] and py in
+        // [-0.5, h - 0.5] (`fast`), where floor is the truncation, less one below 0; the
+        // bordered column and row of floor(px) and floor(py) are then 0 to w and 0 to h.
+        if !(uv.x >= 0.0 && uv.x <= 1.0 && uv.y >= 0.0 && uv.y <= 1.0 && self.fast) {
+            return self.bilinear_anywhere(px, py);
+        }
+        // SAFETY: px and py are finite and within [-0.5, 2^23].
+        let (x0, y0) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
+        let (x0, y0) = (x0 - (px < 0.0) as i32, y0 - (py < 0.0) as i32);
+        self.lerp((x0 + 1) as usize, (y0 + 1) as usize, px - x0 as f32, py - y0 as f32)
+    }
+
+    /// [`Bordered::bilinear`] at any (u, v): u repeats, v is clamped.
+    #[cold]
+    fn bilinear_anywhere(&self, px: f32, py: f32) -> Rgb {
+        let (w, h) = (self.w as i64, self.h as i64);
+        let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
+        let xb = (fx0 as i64).rem_euclid(w) as usize + 1;
+        // Clamping the bordered row to [0, h] clamps both rows read as v's clamp does.
+        let yb = (fy0 as i64 + 1).clamp(0, h) as usize;
+        self.lerp(xb, yb, px - fx0, py - fy0)
+    }
+
+    /// The bilinear blend of the bordered texels (xb, yb) to (xb + 1, yb + 1) with weights
+    /// `tx` and `ty`.
+    #[inline(always)]
+    fn lerp(&self, xb: usize, yb: usize, tx: f32, ty: f32) -> Rgb {
+        let s = self.w + 2;
+        let i = yb * s + xb;
+        debug_assert!(xb <= self.w && yb <= self.h);
+        // SAFETY: xb <= w and yb <= h, so i + s + 1 <= (h + 1) s + w + 1 < (h + 2) s, the
+        // length of `texels`.
+        let t = |k: usize| unsafe { *self.texels.get_unchecked(k) };
+        let top = t(i) * (1.0 - tx) + t(i + 1) * tx;
+        let bottom = t(i + s) * (1.0 - tx) + t(i + s + 1) * tx;
+        top * (1.0 - ty) + bottom * ty
     }
 }
 
@@ -1126,6 +1220,49 @@ mod tests {
                     stats[0]
                 );
             }
+        }
+    }
+
+    #[test]
+    fn the_bordered_lookup_is_the_wrapped_one() {
+        // Bit for bit, on maps of odd and power-of-two sizes (1 x 1 too), at texel centres and
+        // edges, the border, and points outside the unit square (u repeats, v is clamped).
+        let mut rng = Pcg::new(7);
+        for (w, h) in [(1, 1), (2, 1), (5, 3), (8, 4), (33, 17)] {
+            let texels = (0..w * h)
+                .map(|_| Rgb::new(rng.next_f32(), rng.next_f32() * 100.0, rng.next_f32()))
+                .collect();
+            let bmp = Bitmap { width: w, height: h, texels };
+            let b = Bordered::new(&bmp);
+            let mut uvs: Vec<Vec2> = (0..20_000).map(|_| Vec2::new(rng.next_f32(), rng.next_f32())).collect();
+            for i in 0..=2 * w {
+                for j in 0..=2 * h {
+                    uvs.push(Vec2::new(i as f32 / (2 * w) as f32, j as f32 / (2 * h) as f32));
+                }
+            }
+            uvs.extend(
+                [(-0.3, 0.5), (1.7, 0.2), (0.5, -0.4), (0.25, 1.3), (-2.6, 2.2), (1.0, 1.0), (-0.0, 0.0)]
+                    .map(|(u, v)| Vec2::new(u, v)),
+            );
+            for uv in uvs {
+                let want = bmp.bilinear_wrapped(
+                    uv,
+                    crate::texture::WrapMode::Repeat,
+                    crate::texture::WrapMode::Clamp,
+                );
+                let got = b.bilinear(uv);
+                assert_eq!(
+                    got.to_array().map(f32::to_bits),
+                    want.to_array().map(f32::to_bits),
+                    "{w}x{h} at {uv}"
+                );
+            }
+            for y in 0..h {
+                for x in 0..w {
+                    assert_eq!(b.texel(x, y), bmp.texel(x, y));
+                }
+            }
+            assert_eq!(b.bitmap().texels, bmp.texels);
         }
     }
 
