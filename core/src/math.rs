@@ -29,6 +29,18 @@ pub fn safe_asin(x: f32) -> f32 {
     x.clamp(-1.0, 1.0).asin()
 }
 
+/// [`fast_atan2`]'s polynomial in (y / x)^2, constant term first.
+pub(crate) const ATAN_C: [f32; 8] = [
+    0.999_999_9,
+    -0.333_319_9,
+    0.199_696_91,
+    -0.140_192_63,
+    0.099_136_17,
+    -0.059_475_78,
+    0.024_244_2,
+    -0.004_690_802,
+];
+
 /// `y.atan2(x)` to within about 4e-7 rad (2 ulp of a result near pi), without a library call: the
 /// octant's ratio min/max in [0, 1], atan of it by an odd polynomial of degree 15 (fitted for
 /// least maximum relative error on [0, 1]), and the octant's reflections. Signed zeros and
@@ -37,16 +49,7 @@ pub fn safe_asin(x: f32) -> f32 {
 /// BSDF's angles spend this on every lookup.
 #[inline]
 pub fn fast_atan2(y: f32, x: f32) -> f32 {
-    const C: [f32; 8] = [
-        0.999_999_9,
-        -0.333_319_9,
-        0.199_696_91,
-        -0.140_192_63,
-        0.099_136_17,
-        -0.059_475_78,
-        0.024_244_2,
-        -0.004_690_802,
-    ];
+    const C: [f32; 8] = ATAN_C;
     let (ax, ay) = (x.abs(), y.abs());
     let steep = ay > ax;
     let (num, den) = if steep { (ax, ay) } else { (ay, ax) };

@@ -256,6 +256,28 @@ impl F4 {
         self.abs().lt(F4::splat(8_388_608.0)).select(down, self)
     }
 
+    /// [`crate::math::fast_atan2`] per lane, bit for bit (the same operations in the same
+    /// order, both quotients computed and one kept).
+    #[inline(always)]
+    pub fn atan2(y: F4, x: F4) -> F4 {
+        let s = F4::splat;
+        let (ax, ay) = (x.abs(), y.abs());
+        let steep = ax.lt(ay);
+        let (num, den) = (steep.select(ax, ay), steep.select(ay, ax));
+        let a = den.eq(s(0.0)).select(s(0.0) * num, num / den);
+        let z = a * a;
+        let mut p = s(crate::math::ATAN_C[7]);
+        for &c in crate::math::ATAN_C[..7].iter().rev() {
+            p = p * z + s(c);
+        }
+        let r = a * p;
+        let r = steep.select(s(std::f32::consts::FRAC_PI_2) - r, r);
+        // x's sign bit spread over its lane (`is_sign_negative`).
+        let negative_x = I4::splat(0) - x.bits().shr::<31>();
+        let r = negative_x.select(s(std::f32::consts::PI) - r, r);
+        ((r.bits() & I4::splat(i32::MAX)) | (y.bits() & I4::splat(i32::MIN))).from_bits()
+    }
+
     /// e^x per lane, within 1e-7 relative (`exp_and_ln_are_the_librarys`): e^x = 2^n e^r with n =
     /// x log2(e) rounded (by the 1.5 * 2^23 trick, exact in this range) and r = x - n ln 2 in
     /// two parts (Cody and Waite), e^r by a degree-7 minimax polynomial on |r| <= ln(2) / 2, and
@@ -370,6 +392,40 @@ mod tests {
                 assert_eq!(a.max(b).to_array()[i], if fa[i] > fb[i] { fa[i] } else { fb[i] });
                 let sel = a.le(b).select(a, b).to_array()[i];
                 assert_eq!(sel, if fa[i] <= fb[i] { fa[i] } else { fb[i] });
+            }
+        }
+    }
+
+    /// atan2 lane by lane against `fast_atan2`, bit for bit: signed zeros, infinities, NaN,
+    /// equal magnitudes and a spread of random pairs.
+    #[test]
+    fn atan2_lanes_are_fast_atan2() {
+        let special = [
+            0.0f32,
+            -0.0,
+            1.0,
+            -1.0,
+            0.5,
+            -3.0,
+            1e-40,
+            -1e-40,
+            1e30,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+        ];
+        let mut pairs: Vec<(f32, f32)> =
+            special.iter().flat_map(|&y| special.iter().map(move |&x| (y, x))).collect();
+        let mut rng = crate::testing::Pcg::new(11);
+        pairs.extend((0..100_000).map(|_| (rng.next_f32() * 4.0 - 2.0, rng.next_f32() * 4.0 - 2.0)));
+        for c in pairs.chunks(4) {
+            let lane = |k: usize| c.get(k).copied().unwrap_or((1.0, 1.0));
+            let y = F4::new(std::array::from_fn(|k| lane(k).0));
+            let x = F4::new(std::array::from_fn(|k| lane(k).1));
+            let got = F4::atan2(y, x).to_array();
+            for (k, g) in got.iter().enumerate() {
+                let (yk, xk) = lane(k);
+                assert_eq!(g.to_bits(), crate::math::fast_atan2(yk, xk).to_bits(), "atan2({yk}, {xk})");
             }
         }
     }

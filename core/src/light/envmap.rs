@@ -38,7 +38,8 @@ use std::sync::Arc;
 
 use glam::{Mat3, Vec2, Vec3};
 
-use crate::math::{fast_atan2, sin_cos_2pi, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
+use crate::math::{sin_cos_2pi, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
+use crate::simd::F4;
 use crate::texture::{Bitmap, FilterType};
 
 /// The largest f64 below 1: where a rescaled sample number must stay.
@@ -213,17 +214,20 @@ impl EnvMap {
         self.integral
     }
 
-    /// (u, v) of world direction `d`, and sin(theta).
+    /// (u, v) of world direction `d`, and sin(theta): both angles' atan2 in one pass of four
+    /// lanes ([`F4::atan2`], `fast_atan2` bit for bit).
     #[inline]
     fn uv(&self, d: Vec3) -> (Vec2, f32) {
         let l = self.to_local * d;
-        let mut u = fast_atan2(l.x, -l.z) * (0.5 / PI);
+        // theta by atan2, not acos: acos(l.y) rounds to 0 within 2.4e-4 rad of the poles.
+        let sin_t = (l.x * l.x + l.z * l.z).sqrt();
+        let [phi, theta, _, _] =
+            F4::atan2(F4::new([l.x, sin_t, 0.0, 0.0]), F4::new([-l.z, l.y, 1.0, 1.0])).to_array();
+        let mut u = phi * (0.5 / PI);
         if u < 0.0 {
             u += 1.0;
         }
-        // theta by atan2, not acos: acos(l.y) rounds to 0 within 2.4e-4 rad of the poles.
-        let sin_t = (l.x * l.x + l.z * l.z).sqrt();
-        (Vec2::new(u, fast_atan2(sin_t, l.y) / PI), sin_t)
+        (Vec2::new(u, theta / PI), sin_t)
     }
 
     /// The lookup at (u, v), scaled: bilinear (u repeats, v is clamped) or nearest.
