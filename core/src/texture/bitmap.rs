@@ -235,16 +235,53 @@ impl Bitmap {
     /// around and clamps at the poles). Always inlined, so that wraps known at the call fold.
     #[inline(always)]
     pub fn bilinear_wrapped(&self, uv: Vec2, wrap_x: WrapMode, wrap_y: WrapMode) -> Rgb {
-        let px = uv.x * self.width as f32 - 0.5;
-        let py = uv.y * self.height as f32 - 0.5;
-        let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
+        // (Sides below 2^63 convert exactly through i64: one instruction, not u64's several.)
+        let px = uv.x * self.width as i64 as f32 - 0.5;
+        let py = uv.y * self.height as i64 as f32 - 0.5;
+        let (x0, y0, fx0, fy0) = if px.abs() < 8_388_608.0 && py.abs() < 8_388_608.0 {
+            // floor as crate::math::floor takes it below 2^23 (the truncation, less one where
+            // it rounded up), in integers: the same value.
+            // SAFETY: |px|, |py| < 2^23, within i32.
+            let (tx, ty) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
+            let (x0, y0) = (tx - (px < tx as f32) as i32, ty - (py < ty as f32) as i32);
+            (x0 as i64, y0 as i64, x0 as f32, y0 as f32)
+        } else {
+            let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
+            (fx0 as i64, fy0 as i64, fx0, fy0)
+        };
         let (tx, ty) = (px - fx0, py - fy0);
         let (w, h) = (self.width as i64, self.height as i64);
-        let (x0, y0) = (fx0 as i64, fy0 as i64);
         let x = wrap_x.apply_pair(x0, w);
         let y = wrap_y.apply_pair(y0, h);
-        let top = self.texel(x[0], y[0]) * (1.0 - tx) + self.texel(x[1], y[0]) * tx;
-        let bottom = self.texel(x[0], y[1]) * (1.0 - tx) + self.texel(x[1], y[1]) * tx;
+        let (r0, r1) = (y[0] * self.width, y[1] * self.width);
+        self.lerp([r0 + x[0], r0 + x[1], r1 + x[0], r1 + x[1]], tx, ty)
+    }
+
+    /// The bilinear blend of texels `i` (top left, top right, bottom left, bottom right) with
+    /// weights `tx` and `ty`: the same operations, in the same order, as a blend of `Rgb`s
+    /// (on x86-64 the three channels in SSE lanes).
+    #[inline(always)]
+    fn lerp(&self, i: [usize; 4], tx: f32, ty: f32) -> Rgb {
+        let t = &self.texels;
+        #[cfg(target_arch = "x86_64")]
+        if i.iter().all(|&k| k + 1 < t.len()) {
+            // SAFETY: texel k + 1 exists, so the 16 bytes from texel k's first float are in
+            // `texels`.
+            unsafe {
+                use std::arch::x86_64::*;
+                let ld = |k: usize| _mm_loadu_ps(t.as_ptr().add(k) as *const f32);
+                let (x0, x1) = (_mm_set1_ps(1.0 - tx), _mm_set1_ps(tx));
+                let top = _mm_add_ps(_mm_mul_ps(ld(i[0]), x0), _mm_mul_ps(ld(i[1]), x1));
+                let bottom = _mm_add_ps(_mm_mul_ps(ld(i[2]), x0), _mm_mul_ps(ld(i[3]), x1));
+                let c =
+                    _mm_add_ps(_mm_mul_ps(top, _mm_set1_ps(1.0 - ty)), _mm_mul_ps(bottom, _mm_set1_ps(ty)));
+                let mut out = [0.0f32; 4];
+                _mm_storeu_ps(out.as_mut_ptr(), c);
+                return Rgb::new(out[0], out[1], out[2]);
+            }
+        }
+        let top = t[i[0]] * (1.0 - tx) + t[i[1]] * tx;
+        let bottom = t[i[2]] * (1.0 - tx) + t[i[3]] * tx;
         top * (1.0 - ty) + bottom * ty
     }
 
@@ -351,6 +388,58 @@ mod load_tests {
                             mode.apply(i, n),
                             (if k >= n { 2 * n - 1 - k } else { k }) as usize,
                             "{i} {n}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// The lookup bit for bit against the plain one it replaced (floor, both indices wrapped,
+    /// four `Rgb` blends): every wrap mode on each axis, odd and power-of-two sizes, random
+    /// points near and far (past 2^23 texels, where floor keeps the value), texel centres and
+    /// edges, and NaN.
+    #[test]
+    fn bilinear_is_the_plain_lookup_bit_for_bit() {
+        fn plain(b: &Bitmap, uv: Vec2, wx: WrapMode, wy: WrapMode) -> Rgb {
+            let px = uv.x * b.width as f32 - 0.5;
+            let py = uv.y * b.height as f32 - 0.5;
+            let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
+            let (tx, ty) = (px - fx0, py - fy0);
+            let x = wx.apply_pair(fx0 as i64, b.width as i64);
+            let y = wy.apply_pair(fy0 as i64, b.height as i64);
+            let top = b.texel(x[0], y[0]) * (1.0 - tx) + b.texel(x[1], y[0]) * tx;
+            let bottom = b.texel(x[0], y[1]) * (1.0 - tx) + b.texel(x[1], y[1]) * tx;
+            top * (1.0 - ty) + bottom * ty
+        }
+        let mut rng = crate::testing::Pcg::new(5);
+        let modes = [WrapMode::Repeat, WrapMode::Mirror, WrapMode::Clamp];
+        for (w, h) in [(1, 1), (3, 2), (4, 4), (7, 5), (64, 32)] {
+            let texels =
+                (0..w * h).map(|_| Rgb::new(rng.next_f32(), rng.next_f32() * 10.0, rng.next_f32())).collect();
+            let b = Bitmap { width: w, height: h, texels };
+            let mut uvs: Vec<Vec2> = (0..4000)
+                .map(|k| {
+                    let scale = [1.0, 10.0, 1e4, 1e7][k % 4];
+                    Vec2::new((rng.next_f32() * 2.0 - 1.0) * scale, (rng.next_f32() * 2.0 - 1.0) * scale)
+                })
+                .collect();
+            for i in 0..=2 * w {
+                for j in 0..=2 * h {
+                    uvs.push(Vec2::new(i as f32 / (2 * w) as f32, j as f32 / (2 * h) as f32));
+                }
+            }
+            uvs.extend(
+                [(f32::NAN, 0.5), (0.5, f32::NAN), (1e30, -1e30), (-0.0, 0.0)].map(|(u, v)| Vec2::new(u, v)),
+            );
+            for uv in uvs {
+                for wx in modes {
+                    for wy in modes {
+                        let (got, want) = (b.bilinear_wrapped(uv, wx, wy), plain(&b, uv, wx, wy));
+                        assert_eq!(
+                            got.to_array().map(f32::to_bits),
+                            want.to_array().map(f32::to_bits),
+                            "{w}x{h} {wx:?} {wy:?} at {uv}"
                         );
                     }
                 }
