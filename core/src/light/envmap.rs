@@ -654,12 +654,16 @@ fn rows_per_texel(h: usize) -> usize {
 /// (c + f) / n in f32, kept in cell c of n (rounding could carry it into the next cell, which
 /// with nearest lookup may be a black texel).
 fn in_cell(c: usize, f: f64, n: usize) -> f32 {
-    let mut x = ((c as f64 + f.clamp(0.0, 1.0)) / n as f64) as f32;
+    // (Through i64: the same values as from usize, in one conversion instead of several.)
+    let (ci, ni) = (c as i64, n as i64);
+    let nf = ni as f32;
+    let mut x = ((ci as f64 + f.clamp(0.0, 1.0)) / ni as f64) as f32;
     // One or two steps of one ulp; more only past f32's resolution (n > 2^24).
     for _ in 0..4 {
-        if x > 0.0 && (x * n as f32) as usize > c {
+        let cell = (x * nf) as i64;
+        if x > 0.0 && cell > ci {
             x = f32::from_bits(x.to_bits() - 1);
-        } else if ((x * n as f32) as usize) < c {
+        } else if cell < ci {
             x = f32::from_bits(x.to_bits() + 1);
         } else {
             break;
@@ -688,16 +692,24 @@ fn choose16(b: &[f32; 16], ux: &mut f64, uy: &mut f64) -> Option<(usize, usize)>
 /// when `u * sum` rounds up to the sum. `None` if they sum to 0 or overflow.
 #[inline(always)]
 fn pick4(w: [f64; 4], u: f64) -> Option<(usize, f64)> {
-    let p = [0.0, w[0], w[0] + w[1], w[0] + w[1] + w[2], w[0] + w[1] + w[2] + w[3]];
-    let sum = p[4];
-    if !(sum > 0.0 && sum < f64::INFINITY) {
+    // The running sums p1 to p3 and the total, left to right.
+    let p1 = w[0];
+    let p2 = p1 + w[1];
+    let p3 = p2 + w[2];
+    let sum = p3 + w[3];
+    if !(sum > 0.0 && sum <= f64::MAX) {
         return None;
     }
     let x = u * sum;
     // Past boundary m only if some weight lies beyond it: the last such m has p[m] <= x and,
-    // unless x rounded up to the sum, x < p[m + 1].
-    let k = (1..4).map(|m| (x >= p[m] && sum > p[m]) as usize).sum::<usize>();
-    Some((k, ((x - p[k]) / (p[k + 1] - p[k])).clamp(0.0, ONE_BELOW)))
+    // unless x rounded up to the sum, x < p[m + 1]. The three tests hold for a prefix of m
+    // (the sums never decrease), so their count is that m; the share's ends are selected,
+    // not indexed (an array indexed by k would go through memory).
+    let (b1, b2, b3) = (x >= p1 && sum > p1, x >= p2 && sum > p2, x >= p3 && sum > p3);
+    let k = b1 as usize + b2 as usize + b3 as usize;
+    let lo = if b3 { p3 } else if b2 { p2 } else if b1 { p1 } else { 0.0 };
+    let hi = if b3 { sum } else if b2 { p3 } else if b1 { p2 } else { p1 };
+    Some((k, ((x - lo) / (hi - lo)).clamp(0.0, ONE_BELOW)))
 }
 
 /// Chooses one of a 2 x 2 block by its values [(0, 0), (1, 0), (0, 1), (1, 1)]: the column by
