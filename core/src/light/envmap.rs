@@ -619,15 +619,19 @@ impl Warp {
         if !(self.total > 0.0) {
             return 0.0;
         }
-        let (px, py) = (u * self.nu as f32, v * self.nv as f32);
-        let i = (px.max(0.0) as usize).min(self.nu - 1);
-        let k = (py.max(0.0) as usize).min(self.nv - 1);
+        // (Sizes and cells through i64: the same values as through usize, in one conversion
+        // each instead of several.)
+        let (nu, nv) = (self.nu as i64, self.nv as i64);
+        let (px, py) = (u * nu as f32, v * nv as f32);
+        let i = (px.max(0.0) as i64).min(nu - 1);
+        let k = (py.max(0.0) as i64).min(nv - 1);
         let fx = (px - i as f32).clamp(0.0, 1.0) as f64;
         let fy = (py - k as f32).clamp(0.0, 1.0) as f64;
+        let (i, k) = (i as usize, k as usize);
         let c = if (i, k) == (near.i, near.k) { near.corners } else { self.corners(i, k) };
         let c = c.map(f64::from);
         let value = (c[0] * (1.0 - fx) + c[1] * fx) * (1.0 - fy) + (c[2] * (1.0 - fx) + c[3] * fx) * fy;
-        value * (self.nu * self.nv) as f64 / self.total
+        value * (nu * nv) as f64 / self.total
     }
 }
 
