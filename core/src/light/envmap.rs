@@ -346,19 +346,22 @@ impl Bordered {
     fn new(b: &Bitmap) -> Bordered {
         let (w, h) = (b.width, b.height);
         // One texel more than the bordered map: a 16-byte load of the last texel stays inside.
-        let texels = (0..h + 2)
-            .flat_map(|r| {
-                let y = r.saturating_sub(1).min(h - 1);
-                (0..w + 2).map(move |c| b.texel((c + w - 1) % w, y))
-            })
-            .chain([Rgb::ZERO])
-            .collect();
+        // (Allocated once at its size: the scene's memory estimate counts it so.)
+        let mut texels = Vec::with_capacity((w + 2) * (h + 2) + 1);
+        for r in 0..h + 2 {
+            let y = r.saturating_sub(1).min(h - 1);
+            texels.extend((0..w + 2).map(|c| b.texel((c + w - 1) % w, y)));
+        }
+        texels.push(Rgb::ZERO);
         Bordered { w, h, fw: w as f32, fh: h as f32, fast: w < 1 << 23 && h < 1 << 23, texels }
     }
 
     /// The map without its border.
     fn bitmap(&self) -> Bitmap {
-        let texels = (0..self.h).flat_map(|y| (0..self.w).map(move |x| self.texel(x, y))).collect();
+        let mut texels = Vec::with_capacity(self.w * self.h);
+        for y in 0..self.h {
+            texels.extend((0..self.w).map(|x| self.texel(x, y)));
+        }
         Bitmap { width: self.w, height: self.h, texels }
     }
 
@@ -711,8 +714,24 @@ fn pick4(w: [f64; 4], u: f64) -> Option<(usize, f64)> {
     // not indexed (an array indexed by k would go through memory).
     let (b1, b2, b3) = (x >= p1 && sum > p1, x >= p2 && sum > p2, x >= p3 && sum > p3);
     let k = b1 as usize + b2 as usize + b3 as usize;
-    let lo = if b3 { p3 } else if b2 { p2 } else if b1 { p1 } else { 0.0 };
-    let hi = if b3 { sum } else if b2 { p3 } else if b1 { p2 } else { p1 };
+    let lo = if b3 {
+        p3
+    } else if b2 {
+        p2
+    } else if b1 {
+        p1
+    } else {
+        0.0
+    };
+    let hi = if b3 {
+        sum
+    } else if b2 {
+        p3
+    } else if b1 {
+        p2
+    } else {
+        p1
+    };
     Some((k, ((x - lo) / (hi - lo)).clamp(0.0, ONE_BELOW)))
 }
 
