@@ -56,7 +56,8 @@ impl WrapMode {
         // The period's remainder once; the next index's is one more, or 0 past the period.
         let next = |k: i64, m: i64| if k + 1 == m { 0 } else { k + 1 };
         match self {
-            WrapMode::Clamp => [i.clamp(0, n - 1) as usize, (i + 1).clamp(0, n - 1) as usize],
+            // (Saturating: a coordinate past i64's range arrives as i64::MAX.)
+            WrapMode::Clamp => [i.clamp(0, n - 1) as usize, i.saturating_add(1).clamp(0, n - 1) as usize],
             WrapMode::Repeat => {
                 let k = rem(i, n);
                 [k as usize, next(k, n) as usize]
