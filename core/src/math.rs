@@ -528,8 +528,6 @@ mod tests {
         assert_eq!(square_to_uniform_disk_concentric(Vec2::splat(0.5)), Vec2::ZERO);
     }
 
-    /// Against f64's atan2 over every octant, near the axes and diagonals, with signed zeros
-    /// and NaN as libm has them.
     /// The lanes' rounding away from the surface against the scalar steps, bit for bit: zeros
     /// of both signs, infinities, NaN, subnormals, and offsets of every sign (0 and NaN keep
     /// the lane).
@@ -580,6 +578,8 @@ mod tests {
         }
     }
 
+    /// Against f64's atan2 over every octant, near the axes and diagonals, with signed zeros
+    /// and NaN as libm has them.
     #[test]
     fn fast_atan2_is_atan2() {
         let mut worst = 0.0f64;

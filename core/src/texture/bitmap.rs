@@ -236,7 +236,7 @@ impl Bitmap {
     /// around and clamps at the poles). Always inlined, so that wraps known at the call fold.
     #[inline(always)]
     pub fn bilinear_wrapped(&self, uv: Vec2, wrap_x: WrapMode, wrap_y: WrapMode) -> Rgb {
-        // (Sides below 2^63 convert exactly through i64: one instruction, not u64's several.)
+        // (Through i64: the same f32 as from usize, in one instruction instead of several.)
         let px = uv.x * self.width as i64 as f32 - 0.5;
         let py = uv.y * self.height as i64 as f32 - 0.5;
         let (x0, y0, fx0, fy0) = if px.abs() < 8_388_608.0 && py.abs() < 8_388_608.0 {
