@@ -345,7 +345,8 @@ struct Bordered {
 impl Bordered {
     fn new(b: &Bitmap) -> Bordered {
         let (w, h) = (b.width, b.height);
-        // One texel more than the bordered map: a 16-byte load of the last texel stays inside.
+        // One texel more than the bordered map: a 16-byte load of the last texel stays inside
+        // ([`crate::texture::bitmap::blend_unchecked`]).
         // (Allocated once at its size: the scene's memory estimate counts it so.)
         let mut texels = Vec::with_capacity((w + 2) * (h + 2) + 1);
         for r in 0..h + 2 {
@@ -407,36 +408,18 @@ impl Bordered {
     }
 
     /// The bilinear blend of the bordered texels (xb, yb) to (xb + 1, yb + 1) with weights
-    /// `tx` and `ty`: the same operations, in the same order, as a blend of `Rgb`s (on x86-64
-    /// the three channels in SSE lanes).
+    /// `tx` and `ty` ([`crate::texture::bitmap::blend`], without its bounds check on x86-64).
     #[inline(always)]
     fn lerp(&self, xb: usize, yb: usize, tx: f32, ty: f32) -> Rgb {
-        let s = self.w + 2;
-        let i = yb * s + xb;
         debug_assert!(xb <= self.w && yb <= self.h);
+        let (s, i) = (self.w + 2, yb * (self.w + 2) + xb);
+        let i = [i, i + 1, i + s, i + s + 1];
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: xb <= w and yb <= h, so i + s + 1 <= (h + 1) s + w + 1 < (h + 2) s, and each
-        // 16-byte load of a texel reads at most one float past it: `texels` has one texel
-        // more than the bordered map.
-        unsafe {
-            use std::arch::x86_64::*;
-            let p = self.texels.as_ptr().add(i) as *const f32;
-            let ld = |k: usize| _mm_loadu_ps(p.add(3 * k));
-            let (x0, x1) = (_mm_set1_ps(1.0 - tx), _mm_set1_ps(tx));
-            let top = _mm_add_ps(_mm_mul_ps(ld(0), x0), _mm_mul_ps(ld(1), x1));
-            let bottom = _mm_add_ps(_mm_mul_ps(ld(s), x0), _mm_mul_ps(ld(s + 1), x1));
-            let c = _mm_add_ps(_mm_mul_ps(top, _mm_set1_ps(1.0 - ty)), _mm_mul_ps(bottom, _mm_set1_ps(ty)));
-            let mut out = [0.0f32; 4];
-            _mm_storeu_ps(out.as_mut_ptr(), c);
-            Rgb::new(out[0], out[1], out[2])
-        }
+        // SAFETY: xb <= w and yb <= h, so i + s + 1 <= (h + 1) s + w + 1 = (h + 2) s - 1, and
+        // the spare texel at the end of `texels` (index (h + 2) s) follows it.
+        return unsafe { crate::texture::bitmap::blend_unchecked(&self.texels, i, tx, ty) };
         #[cfg(not(target_arch = "x86_64"))]
-        {
-            let t = |k: usize| self.texels[k];
-            let top = t(i) * (1.0 - tx) + t(i + 1) * tx;
-            let bottom = t(i + s) * (1.0 - tx) + t(i + s + 1) * tx;
-            top * (1.0 - ty) + bottom * ty
-        }
+        crate::texture::bitmap::blend(&self.texels, i, tx, ty)
     }
 }
 

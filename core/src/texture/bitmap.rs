@@ -255,41 +255,50 @@ impl Bitmap {
         let x = wrap_x.apply_pair(x0, w);
         let y = wrap_y.apply_pair(y0, h);
         let (r0, r1) = (y[0] * self.width, y[1] * self.width);
-        self.lerp([r0 + x[0], r0 + x[1], r1 + x[0], r1 + x[1]], tx, ty)
-    }
-
-    /// The bilinear blend of texels `i` (top left, top right, bottom left, bottom right) with
-    /// weights `tx` and `ty`: the same operations, in the same order, as a blend of `Rgb`s
-    /// (on x86-64 the three channels in SSE lanes).
-    #[inline(always)]
-    fn lerp(&self, i: [usize; 4], tx: f32, ty: f32) -> Rgb {
-        let t = &self.texels;
-        #[cfg(target_arch = "x86_64")]
-        if i.iter().all(|&k| k + 1 < t.len()) {
-            // SAFETY: texel k + 1 exists, so the 16 bytes from texel k's first float are in
-            // `texels`.
-            unsafe {
-                use std::arch::x86_64::*;
-                let ld = |k: usize| _mm_loadu_ps(t.as_ptr().add(k) as *const f32);
-                let (x0, x1) = (_mm_set1_ps(1.0 - tx), _mm_set1_ps(tx));
-                let top = _mm_add_ps(_mm_mul_ps(ld(i[0]), x0), _mm_mul_ps(ld(i[1]), x1));
-                let bottom = _mm_add_ps(_mm_mul_ps(ld(i[2]), x0), _mm_mul_ps(ld(i[3]), x1));
-                let c =
-                    _mm_add_ps(_mm_mul_ps(top, _mm_set1_ps(1.0 - ty)), _mm_mul_ps(bottom, _mm_set1_ps(ty)));
-                let mut out = [0.0f32; 4];
-                _mm_storeu_ps(out.as_mut_ptr(), c);
-                return Rgb::new(out[0], out[1], out[2]);
-            }
-        }
-        let top = t[i[0]] * (1.0 - tx) + t[i[1]] * tx;
-        let bottom = t[i[2]] * (1.0 - tx) + t[i[3]] * tx;
-        top * (1.0 - ty) + bottom * ty
+        blend(&self.texels, [r0 + x[0], r0 + x[1], r1 + x[0], r1 + x[1]], tx, ty)
     }
 
     pub fn mean(&self) -> Rgb {
         let s = self.texels.iter().fold(glam::DVec3::ZERO, |a, t| a + t.as_dvec3());
         (s / self.texels.len() as f64).as_vec3()
     }
+}
+
+/// The bilinear blend of `texels[i]` (top left, top right, bottom left, bottom right) with
+/// weights `tx` and `ty`: the same operations, in the same order, as a blend of `Rgb`s; on
+/// x86-64 in SSE lanes ([`blend_unchecked`]) where every texel's 16-byte load stays inside
+/// `texels`.
+#[inline(always)]
+pub(crate) fn blend(texels: &[Rgb], i: [usize; 4], tx: f32, ty: f32) -> Rgb {
+    #[cfg(target_arch = "x86_64")]
+    if i.iter().all(|&k| k + 1 < texels.len()) {
+        // SAFETY: just checked.
+        return unsafe { blend_unchecked(texels, i, tx, ty) };
+    }
+    let top = texels[i[0]] * (1.0 - tx) + texels[i[1]] * tx;
+    let bottom = texels[i[2]] * (1.0 - tx) + texels[i[3]] * tx;
+    top * (1.0 - ty) + bottom * ty
+}
+
+/// [`blend`] in SSE lanes without its check: 16-byte loads of 12-byte texels, the same
+/// operations in the same order.
+///
+/// # Safety
+/// Texel `k + 1` exists for every index `k` in `i` (so the 16 bytes from texel k's first float
+/// lie in `texels`).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(crate) unsafe fn blend_unchecked(texels: &[Rgb], i: [usize; 4], tx: f32, ty: f32) -> Rgb {
+    use std::arch::x86_64::*;
+    debug_assert!(i.iter().all(|&k| k + 1 < texels.len()));
+    let ld = |k: usize| _mm_loadu_ps(texels.as_ptr().add(k) as *const f32);
+    let (x0, x1) = (_mm_set1_ps(1.0 - tx), _mm_set1_ps(tx));
+    let top = _mm_add_ps(_mm_mul_ps(ld(i[0]), x0), _mm_mul_ps(ld(i[1]), x1));
+    let bottom = _mm_add_ps(_mm_mul_ps(ld(i[2]), x0), _mm_mul_ps(ld(i[3]), x1));
+    let c = _mm_add_ps(_mm_mul_ps(top, _mm_set1_ps(1.0 - ty)), _mm_mul_ps(bottom, _mm_set1_ps(ty)));
+    let mut out = [0.0f32; 4];
+    _mm_storeu_ps(out.as_mut_ptr(), c);
+    Rgb::new(out[0], out[1], out[2])
 }
 
 /// Scene loading: `bitmap` (`filename`, `filter_type`, `wrap_mode`, `raw`, `to_uv`). An image
