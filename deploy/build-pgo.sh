@@ -1,0 +1,79 @@
+#!/usr/bin/env bash
+# A profile-guided build of furnace (issue 15): the binary to ship to workers and artists.
+#
+#   deploy/build-pgo.sh [OUT]        (default OUT: target/pgo/furnace)
+#
+# 1. builds furnace instrumented (-Cprofile-generate) into target/pgo/gen;
+# 2. renders the training scenes with it (below: shipped scenes that the benchmarks do not
+#    use, so that the gains measured on the benchmark scenes are on scenes it was not trained
+#    on), which writes the branch and call counts;
+# 3. merges them with llvm-profdata (rustup's llvm-tools component, added if missing) and
+#    builds furnace again with them (-Cprofile-use) into target/pgo/use, copied to OUT;
+# 4. checks that OUT renders the same bytes as a plain `cargo build --release` on the five
+#    test scenes: the profile changes code layout, inlining and branch order, never the
+#    floating-point operations, so a farm of PGO workers still gives furnace render's bytes.
+#
+# Takes about 10 minutes on 2 cores (three release builds). Exit 0: OUT is built and checked.
+# Measured in docs/BENCHMARKS.md ("Issue 15, tenth step").
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out=${1:-target/pgo/furnace}
+step() { echo "build-pgo: $*"; }
+fail() { echo "build-pgo: FAILED: $*" >&2; exit 1; }
+
+sysroot=$(rustc --print sysroot)
+host=$(rustc -vV | sed -n 's/^host: //p')
+profdata="$sysroot/lib/rustlib/$host/bin/llvm-profdata"
+if [ ! -x "$profdata" ]; then
+    step "adding rustup's llvm-tools (for llvm-profdata)"
+    rustup component add llvm-tools || fail "rustup component add llvm-tools"
+fi
+[ -x "$profdata" ] || fail "no llvm-profdata at $profdata"
+
+mkdir -p target/pgo
+data=$(realpath -m target/pgo/data)
+rm -rf "$data"
+step "1/4 instrumented build"
+RUSTFLAGS="${RUSTFLAGS:-} -Cprofile-generate=$data" \
+    cargo build --release --locked --quiet --bin furnace --target-dir target/pgo/gen
+gen=target/pgo/gen/release/furnace
+
+# The training set: every feature the renderer has (triangles, spheres, fibres, instances,
+# textures, the environment map and a sun, every material, the thin lens), none of the
+# scenes that bench/vs-mitsuba.sh and bench/ab.sh measure.
+train=(
+    examples/materials.xml:16 examples/depth-of-field.xml:16 tests/scenes/checker.xml:16
+    tests/scenes/fibre.xml:16 tests/scenes/instances.xml:8 tests/scenes/lights.xml:16
+    tests/scenes/roughplastic.xml:16 tests/scenes/sun.xml:16
+)
+step "2/4 training on ${#train[@]} scenes"
+for entry in "${train[@]}"; do
+    scene=${entry%:*}; spp=${entry##*:}
+    "$gen" render "$scene" --spp "$spp" --threads 2 -o target/pgo/train.exr >target/pgo/train.log 2>&1 \
+        || { cat target/pgo/train.log; fail "training render of $scene"; }
+done
+"$profdata" merge -o target/pgo/merged.profdata "$data" || fail "llvm-profdata merge"
+# Named by its contents: cargo sees a new profile as new flags and builds every crate again
+# with it (it does not look inside the file a flag names).
+profile=$(realpath "target/pgo/furnace-$(sha256sum target/pgo/merged.profdata | cut -c1-16).profdata")
+rm -f target/pgo/furnace-*.profdata
+mv target/pgo/merged.profdata "$profile"
+
+step "3/4 optimised build with the profile"
+RUSTFLAGS="${RUSTFLAGS:-} -Cprofile-use=$profile" \
+    cargo build --release --locked --quiet --bin furnace --target-dir target/pgo/use
+mkdir -p "$(dirname "$out")"
+cp target/pgo/use/release/furnace "$out"
+
+step "4/4 the same bytes as a plain release build"
+cargo build --release --locked --quiet --bin furnace
+for scene in cbox textured envmap thinlens hair; do
+    for which in plain pgo; do
+        bin=target/release/furnace; [ $which = pgo ] && bin=$out
+        "$bin" render "tests/scenes/$scene.xml" --spp 4 --threads 2 -o "target/pgo/check-$which.exr" \
+            >target/pgo/check.log 2>&1 || { cat target/pgo/check.log; fail "render of $scene with $bin"; }
+    done
+    cmp -s target/pgo/check-plain.exr target/pgo/check-pgo.exr \
+        || fail "$scene: $out renders other bytes than target/release/furnace"
+done
+step "$out: built with the profile, renders the plain build's bytes (cbox, textured, envmap, thinlens, hair)"
