@@ -6,8 +6,10 @@
 #   bench/vs-mitsuba.sh [THREADS=2] [REPEATS=3] [SCENE.xml:SPP ...]
 #
 # SEEDS=N (default 1): both errors are medians over seeds 0..N-1 (under a small bright sun
-# one seed's relMSE is a lottery of fireflies). FURNACE=BINARY measures that binary instead of building this tree. Default scenes: tests/scenes/{cbox,textured,envmap,thinlens,hair}.xml at 64 spp and
-# examples/whimsical.xml at 16. Needs Mitsuba 3: bench/peers/setup.sh (venv outside the repo,
+# one seed's relMSE is a lottery of fireflies). FURNACE=BINARY measures that binary instead of
+# building this tree; PGO=1 builds it profile-guided (deploy/build-pgo.sh, about 7 minutes, the
+# binary to ship) and measures that. Default scenes:
+# tests/scenes/{cbox,textured,envmap,thinlens,hair}.xml at 64 spp and examples/whimsical.xml at 16. Needs Mitsuba 3: bench/peers/setup.sh (venv outside the repo,
 # $PEERS_VENV, default ../peers-venv).
 #
 # Samples/s: median over REPEATS of width * height * spp / render seconds (scene loading
@@ -29,6 +31,10 @@ fi
 PY="$ROOT/bench/peers/py.sh"
 TMP="$(mktemp -d)"; trap 'rm -rf "$TMP"' EXIT
 
+if [ -z "${FURNACE:-}" ] && [ -n "${PGO:-}" ]; then   # PGO=1: the profile-guided build, as shipped
+    "$ROOT/deploy/build-pgo.sh" >&2
+    FURNACE="$ROOT/target/pgo/furnace"
+fi
 if [ -z "${FURNACE:-}" ]; then   # FURNACE=path/to/furnace measures that binary instead
     cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml"
     FURNACE="$ROOT/target/release/furnace"
