@@ -8,19 +8,24 @@
 #    use, so that the gains measured on the benchmark scenes are on scenes it was not trained
 #    on), which writes the branch and call counts;
 # 3. merges them with llvm-profdata (rustup's llvm-tools component, added if missing) and
-#    builds furnace again with them (-Cprofile-use) into target/pgo/use, copied to OUT;
-# 4. checks that OUT renders the same bytes as a plain `cargo build --release` on the five
-#    test scenes: the profile changes code layout, inlining and branch order, never the
-#    floating-point operations, so a farm of PGO workers still gives furnace render's bytes.
+#    builds furnace again with them (-Cprofile-use) into target/pgo/use;
+# 4. checks that this binary renders the same bytes as a plain `cargo build --release` on
+#    the five test scenes (the profile changes code layout, inlining and branch order, never
+#    the floating-point operations, so a farm of PGO workers still gives furnace render's
+#    bytes), and only then copies it to OUT.
 #
-# Takes about 10 minutes on 2 cores (three release builds). Exit 0: OUT is built and checked.
-# Measured in docs/BENCHMARKS.md ("Issue 15, tenth step").
+# Three release builds (the plain one is cargo's usual, reused when it is up to date): about
+# 7 minutes on 2 cores. Exit 0: OUT is built and checked. Measured in docs/BENCHMARKS.md
+# ("Issue 15, tenth step"). The flags go to the target's crates only (--target), not to build
+# scripts and procedural macros; RUSTFLAGS, if set, is kept; cargo-config rustflags are not
+# (cargo ignores them when flags come from the environment), so none are taken.
 set -euo pipefail
+out=$(realpath -m "${1:-$(dirname "$0")/../target/pgo/furnace}")
 cd "$(dirname "$0")/.."
-out=${1:-target/pgo/furnace}
 step() { echo "build-pgo: $*"; }
 fail() { echo "build-pgo: FAILED: $*" >&2; exit 1; }
 
+[ -z "${CARGO_ENCODED_RUSTFLAGS:-}" ] || fail "CARGO_ENCODED_RUSTFLAGS is set: pass extra flags in RUSTFLAGS"
 sysroot=$(rustc --print sysroot)
 host=$(rustc -vV | sed -n 's/^host: //p')
 profdata="$sysroot/lib/rustlib/$host/bin/llvm-profdata"
@@ -30,13 +35,25 @@ if [ ! -x "$profdata" ]; then
 fi
 [ -x "$profdata" ] || fail "no llvm-profdata at $profdata"
 
+# RUSTFLAGS' words and one more flag, as cargo's unit-separated list (paths may hold spaces).
+flags() {
+    local words=() joined
+    read -ra words <<<"${RUSTFLAGS:-}"
+    words+=("$1")
+    joined=$(printf '%s\x1f' "${words[@]}")
+    printf '%s' "${joined%$'\x1f'}"
+}
+build() { # TARGET_DIR FLAG
+    env -u RUSTFLAGS CARGO_ENCODED_RUSTFLAGS="$(flags "$2")" \
+        cargo build --release --locked --quiet --bin furnace --target "$host" --target-dir "$1"
+}
+
 mkdir -p target/pgo
 data=$(realpath -m target/pgo/data)
 rm -rf "$data"
 step "1/4 instrumented build"
-RUSTFLAGS="${RUSTFLAGS:-} -Cprofile-generate=$data" \
-    cargo build --release --locked --quiet --bin furnace --target-dir target/pgo/gen
-gen=target/pgo/gen/release/furnace
+build target/pgo/gen "-Cprofile-generate=$data"
+gen=$(realpath "target/pgo/gen/$host/release/furnace")
 
 # The training set: every feature the renderer has (triangles, spheres, fibres, instances,
 # textures, the environment map and a sun, every material, the thin lens), none of the
@@ -52,6 +69,7 @@ for entry in "${train[@]}"; do
     "$gen" render "$scene" --spp "$spp" --threads 2 -o target/pgo/train.exr >target/pgo/train.log 2>&1 \
         || { cat target/pgo/train.log; fail "training render of $scene"; }
 done
+ls "$data"/*.profraw >/dev/null 2>&1 || fail "the training renders wrote no profile to $data"
 "$profdata" merge -o target/pgo/merged.profdata "$data" || fail "llvm-profdata merge"
 # Named by its contents: cargo sees a new profile as new flags and builds every crate again
 # with it (it does not look inside the file a flag names).
@@ -60,20 +78,29 @@ rm -f target/pgo/furnace-*.profdata
 mv target/pgo/merged.profdata "$profile"
 
 step "3/4 optimised build with the profile"
-RUSTFLAGS="${RUSTFLAGS:-} -Cprofile-use=$profile" \
-    cargo build --release --locked --quiet --bin furnace --target-dir target/pgo/use
-mkdir -p "$(dirname "$out")"
-cp target/pgo/use/release/furnace "$out"
+build target/pgo/use "-Cprofile-use=$profile"
+pgo=$(realpath "target/pgo/use/$host/release/furnace")
 
 step "4/4 the same bytes as a plain release build"
-cargo build --release --locked --quiet --bin furnace
+# cargo's own release build, wherever its target directory is (CARGO_TARGET_DIR, config).
+plain=$(cargo build --release --locked --bin furnace --message-format=json \
+    | python3 -c 'import json, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("executable"):
+        print(m["executable"])') || fail "the plain release build"
+[ -x "$plain" ] || fail "no plain release binary (cargo said: '$plain')"
+! cmp -s "$plain" "$pgo" || fail "$pgo is the plain binary itself: the profile was not applied"
 for scene in cbox textured envmap thinlens hair; do
+    rm -f target/pgo/check-plain.exr target/pgo/check-pgo.exr
     for which in plain pgo; do
-        bin=target/release/furnace; [ $which = pgo ] && bin=$out
+        bin=$plain; [ $which = pgo ] && bin=$pgo
         "$bin" render "tests/scenes/$scene.xml" --spp 4 --threads 2 -o "target/pgo/check-$which.exr" \
             >target/pgo/check.log 2>&1 || { cat target/pgo/check.log; fail "render of $scene with $bin"; }
     done
     cmp -s target/pgo/check-plain.exr target/pgo/check-pgo.exr \
-        || fail "$scene: $out renders other bytes than target/release/furnace"
+        || fail "$scene: $pgo renders other bytes than $plain"
 done
+mkdir -p "$(dirname "$out")"
+cp "$pgo" "$out.tmp" && mv -f "$out.tmp" "$out"   # a running worker's binary is replaced, not overwritten
 step "$out: built with the profile, renders the plain build's bytes (cbox, textured, envmap, thinlens, hair)"

@@ -5,8 +5,8 @@
 //! coordinator, two workers and a token on the host's network, and checks from the host that
 //! `furnace submit --wait` gives furnace render's bytes, that every HEALTHCHECK reports
 //! healthy, that `docker stop` lets a worker finish its chunk, and that `docker restart` keeps
-//! the coordinator's job. Where no Docker engine can be started, it is skipped with the reason
-//! printed (on the terminal, not captured).
+//! the coordinator's job. Where no Docker engine can be started, or the disk has no room for
+//! the images, it is skipped with the reason printed (on the terminal, not captured).
 
 use std::process::Command;
 
@@ -22,7 +22,9 @@ fn the_compose_farm_runs_in_docker_as_furnace_render_does() {
         .expect("bash runs");
     match status.code() {
         Some(0) => {}
-        Some(77) => eprintln!("skipped: no Docker engine here (the reason is printed above)"),
+        Some(77) => {
+            eprintln!("skipped: the reason is printed above (no Docker engine, or no room for images)")
+        }
         other => panic!("deploy/docker/compose-test.sh failed ({other:?}); its output is above"),
     }
 }

@@ -15,7 +15,8 @@
 #
 #   deploy/docker/compose-test.sh [FURNACE_BINARY]     (default: target/release/furnace)
 #
-# Exit 0: passed. Exit 77: skipped, the reason printed (no Docker engine can be started here).
+# Exit 0: passed. Exit 77: skipped, the reason printed (no Docker engine can be started here,
+# or the disk has too little room for the images).
 # Anything else: failed. Needs root to start dockerd and to run debootstrap.
 set -euo pipefail
 shopt -s inherit_errexit
@@ -45,11 +46,13 @@ mkdir -p "$work"
 compose() { FURNACE_TOKEN=$token "${compose_cmd[@]}" -p "$project" -f deploy/compose/compose.host.yaml "$@"; }
 started_dockerd=""
 brought_up=""
+copied=""
+root=""
 cleanup() {
     if [ -n "$brought_up" ]; then compose down -v --remove-orphans >/dev/null 2>&1 || true; fi
-    # The images are rebuilt at every run: give their space back (the base image stays).
-    "$docker" image rm -f furnace-coordinator:local furnace-worker:local >/dev/null 2>&1 || true
-    rm -f target/docker/furnace
+    # What this run made and no later run reuses: its copy of the binary, a half-made base image.
+    if [ -n "$copied" ]; then rm -f target/docker/furnace || true; fi
+    if [ -n "$root" ]; then rm -rf "$root" || true; fi
     if [ -n "$started_dockerd" ]; then kill "$started_dockerd" 2>/dev/null || true; wait "$started_dockerd" 2>/dev/null || true; fi
 }
 trap cleanup EXIT
@@ -82,7 +85,7 @@ need_mb=600
 docker_root=$("$docker" info -f '{{.DockerRootDir}}' 2>/dev/null || echo /var/lib/docker)
 for dir in "$work" "$docker_root"; do
     d=$dir; while [ ! -e "$d" ]; do d=$(dirname "$d"); done
-    free_mb=$(df -Pm "$d" | awk 'NR == 2 { print $4 }')
+    free_mb=$(df -Pm "$d" 2>/dev/null | awk 'NR == 2 { print $4 }') || true
     [ "${free_mb:-0}" -ge "$need_mb" ] || skip "only ${free_mb} MB free on the disk holding $dir; the images and containers need about $need_mb MB"
 done
 
@@ -96,18 +99,24 @@ if ! "$docker" image inspect debian:bookworm-slim >/dev/null 2>&1; then
         || fail "debootstrap failed: $(tail -n 3 "$work/debootstrap.log" | tr '\n' ' ')"
     tar -C "$root" -c . | "$docker" import - debian:bookworm-slim >/dev/null
     rm -rf "$root"
+    root=""
 fi
 
 # The images, around the binary built on this host.
 step "building furnace-coordinator:local and furnace-worker:local from $bin"
 mkdir -p target/docker
 # Without its debug information: a debug build's binary is 280 MB, 21 MB without (the images'
-# layers, the build context and this copy each hold it once). A CI run once failed here with
-# the disk full.
-if command -v objcopy >/dev/null; then
-    objcopy --strip-debug "$bin" target/docker/furnace || fail "objcopy --strip-debug $bin"
-else
-    cp "$bin" target/docker/furnace
+# layers, BuildKit's cache of the build context and this copy each hold it once). A CI run
+# once failed here with the disk full. A binary given as target/docker/furnace itself (the
+# README's place for one) is taken as it is, and left there.
+if [ "$bin" != "$(realpath -m target/docker/furnace)" ]; then
+    copied=1
+    if command -v objcopy >/dev/null; then
+        objcopy --strip-debug "$bin" target/docker/furnace || fail "objcopy --strip-debug $bin"
+    else
+        cp "$bin" target/docker/furnace
+    fi
+    chmod 755 target/docker/furnace   # whatever the umask: the images run it as uid 10001
 fi
 for target in coordinator worker; do
     t0=$(date +%s.%N)
