@@ -16,9 +16,9 @@
 #
 # Three release builds (the plain one is cargo's usual, reused when it is up to date): about
 # 7 minutes on 2 cores. Exit 0: OUT is built and checked. Measured in docs/BENCHMARKS.md
-# ("Issue 15, tenth step"). The flags go to the target's crates only (--target), not to build
-# scripts and procedural macros; RUSTFLAGS, if set, is kept; cargo-config rustflags are not
-# (cargo ignores them when flags come from the environment), so none are taken.
+# ("Issue 15, tenth step"). The profile flags go to the target's crates only (--target), not
+# to build scripts and procedural macros. RUSTFLAGS, if set, is added to them; rustflags from
+# a cargo config are not (cargo ignores the config when flags come from the environment).
 set -euo pipefail
 out=$(realpath -m "${1:-$(dirname "$0")/../target/pgo/furnace}")
 cd "$(dirname "$0")/.."
@@ -91,13 +91,14 @@ for line in sys.stdin:
         print(m["executable"])') || fail "the plain release build"
 [ -x "$plain" ] || fail "no plain release binary (cargo said: '$plain')"
 ! cmp -s "$plain" "$pgo" || fail "$pgo is the plain binary itself: the profile was not applied"
+check_render() { # BINARY SCENE OUT
+    rm -f "$3"
+    "$1" render "tests/scenes/$2.xml" --spp 4 --threads 2 -o "$3" >target/pgo/check.log 2>&1 \
+        || { cat target/pgo/check.log; fail "render of $2 with $1"; }
+}
 for scene in cbox textured envmap thinlens hair; do
-    rm -f target/pgo/check-plain.exr target/pgo/check-pgo.exr
-    for which in plain pgo; do
-        bin=$plain; [ $which = pgo ] && bin=$pgo
-        "$bin" render "tests/scenes/$scene.xml" --spp 4 --threads 2 -o "target/pgo/check-$which.exr" \
-            >target/pgo/check.log 2>&1 || { cat target/pgo/check.log; fail "render of $scene with $bin"; }
-    done
+    check_render "$plain" "$scene" target/pgo/check-plain.exr
+    check_render "$pgo" "$scene" target/pgo/check-pgo.exr
     cmp -s target/pgo/check-plain.exr target/pgo/check-pgo.exr \
         || fail "$scene: $pgo renders other bytes than $plain"
 done
