@@ -76,9 +76,10 @@ pub struct WorkerArgs {
     /// Render threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Chunks rendered at once on those threads (2 keeps them busy across chunk ends).
-    #[arg(long, default_value_t = 2)]
-    pub slots: usize,
+    /// Chunks rendered at once on those threads, so that chunk ends do not idle them
+    /// (default: half the threads, at least 2).
+    #[arg(long)]
+    pub slots: Option<usize>,
     #[arg(long, env = "FURNACE_TOKEN")]
     pub token: Option<String>,
     /// Name shown in job status (default: host and process id, and in a container a random
@@ -247,7 +248,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
             let cfg = furnace_worker::WorkerConfig {
                 link: link.clone(),
                 threads: a.worker_threads.unwrap_or(0),
-                slots: 2,
+                slots: 0,
                 name: format!("local-{i}"),
                 poll: Duration::from_millis(100),
                 stop: stop.clone(),
@@ -280,7 +281,7 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
     let cfg = furnace_worker::WorkerConfig {
         link: Arc::new(link),
         threads: a.threads.unwrap_or(0),
-        slots: a.slots,
+        slots: a.slots.unwrap_or(0),
         name: a.name.unwrap_or_else(|| default_worker_name(&host)),
         // Lease requests wait at the coordinator for work (long polling); this is the pause
         // between two of them.

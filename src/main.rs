@@ -66,6 +66,10 @@ struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Chunks rendered at once on those threads (default: half the threads, at least 2).
+    /// Does not change the image.
+    #[arg(long)]
+    slots: Option<usize>,
     /// Sample seed (default: the scene sampler's seed).
     #[arg(long)]
     seed: Option<u64>,
@@ -221,18 +225,19 @@ fn render(a: RenderArgs) -> Result<()> {
         ..local_settings()
     };
     let (image, stats, estimate, dropped) =
-        render_local(Arc::new(scene), settings, threads, &|done, total| {
+        render_local(Arc::new(scene), settings, threads, a.slots.unwrap_or(0), &|done, total| {
             bar.set_length(total);
             bar.set_position(done)
         })?;
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
     let threads = if threads == 0 { rayon::current_num_threads() } else { threads };
+    let slots = a.slots.unwrap_or_else(|| furnace_worker::auto_slots(threads));
     image.write_exr(&out)?;
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;
     tracing::info!(
-        "rendered {w}x{h}: {} samples ({:.1} spp of at most {spp}) in {secs:.3}s on {threads} threads: {:.3} Msamples/s",
+        "rendered {w}x{h}: {} samples ({:.1} spp of at most {spp}) in {secs:.3}s on {threads} threads ({slots} chunks in flight): {:.3} Msamples/s",
         stats.samples,
         stats.samples as f64 / (w as f64 * h as f64),
         stats.samples as f64 / secs / 1e6
@@ -258,12 +263,14 @@ fn render(a: RenderArgs) -> Result<()> {
 }
 
 /// Renders on this machine through the farm in one process: a coordinator that stores nothing
-/// and one worker on `threads` threads (0: all cores). The bytes are the farm's. Returns the
-/// image, the render statistics, the estimated relative MSE and the dropped samples.
+/// and one worker on `threads` threads (0: all cores) with `slots` chunks in flight (0: the
+/// worker's default). The bytes are the farm's. Returns the image, the render statistics, the
+/// estimated relative MSE and the dropped samples.
 pub fn render_local(
     scene: Arc<Scene>,
     settings: JobSettings,
     threads: usize,
+    slots: usize,
     progress: &dyn Fn(u64, u64),
 ) -> Result<(Image, Stats, Option<f64>, furnace_core::Dropped)> {
     let coord = Arc::new(Mutex::new(Coordinator::ephemeral()?));
@@ -273,7 +280,7 @@ pub fn render_local(
     let cfg = WorkerConfig {
         link: link.clone(),
         threads,
-        slots: 2,
+        slots,
         name: "local".into(),
         poll: Duration::from_millis(10),
         stop: Arc::new(AtomicBool::new(false)),

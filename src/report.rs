@@ -209,7 +209,7 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
             let scene = Arc::new(Scene::load(&a.scene, defines)?);
             let t = Instant::now();
             let settings = JobSettings { spp, seed: ref_seed, ..crate::local_settings() };
-            let img = crate::render_local(scene, settings, threads, &|_, _| {})?.0;
+            let img = crate::render_local(scene, settings, threads, 0, &|_, _| {})?.0;
             println!("  rendered in {:.1} s", t.elapsed().as_secs_f64());
             img.write_exr(&dir.join("reference.exr"))?;
             img
@@ -236,7 +236,7 @@ pub fn report(a: ReportArgs, defines: &[(String, String)]) -> Result<()> {
                 let t = Instant::now();
                 let settings = JobSettings { spp, seed: seed + s, ..crate::local_settings() };
                 let (img, _, estimated, _) =
-                    crate::render_local(scene.clone(), settings, threads, &|_, _| {})?;
+                    crate::render_local(scene.clone(), settings, threads, 0, &|_, _| {})?;
                 let seconds = t.elapsed().as_secs_f64();
                 spent += seconds;
                 let c = img.compare(&reference).with_context(|| {

@@ -32,26 +32,33 @@ fn render_writes_exr_and_png() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `furnace render` runs the farm in one process (a coordinator and a worker with two chunks
-/// in flight); neither threads nor tile size change a bit of the image, which equals the
-/// library's plain render loop.
+/// `furnace render` runs the farm in one process (a coordinator and a worker with several
+/// chunks in flight); neither threads, chunks in flight nor tile size change a bit of the image,
+/// which equals the library's plain render loop.
 #[test]
 fn render_through_the_in_process_farm_equals_the_plain_render_loop() {
     let dir = scratch("cli-one-path");
     let scene = load("small.xml", &[("width", "24")]);
     let expect = render(&scene, 70, 9).0.develop();
-    for (threads, tile) in [("1", "8"), ("2", "32"), ("3", "5")] {
-        let out = dir.join(format!("t{threads}.exr"));
-        let o = furnace()
-            .args(["render", "--spp", "70", "--seed", "9", "-D", "width=24", "--threads", threads])
-            .args(["--tile", tile, "-o"])
-            .arg(&out)
-            .arg(scenes().join("small.xml"))
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for (threads, slots, tile) in
+        [("1", None, "8"), ("2", None, "32"), ("3", Some("1"), "5"), ("2", Some("9"), "7")]
+    {
+        let out = dir.join(format!("t{threads}-{tile}.exr"));
+        let mut cmd = furnace();
+        cmd.args(["render", "--spp", "70", "--seed", "9", "-D", "width=24", "--threads", threads]);
+        if let Some(k) = slots {
+            cmd.args(["--slots", k]);
+        }
+        let o = cmd.args(["--tile", tile, "-o"]).arg(&out).arg(scenes().join("small.xml")).output().unwrap();
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{stderr}");
+        let in_flight = format!("({} chunks in flight)", slots.unwrap_or("2"));
+        assert!(stderr.contains(&in_flight), "expected {in_flight} in {stderr}");
         let img = Image::read_exr(&out).unwrap();
-        assert!(img.data == expect.data, "threads {threads}, tile {tile}: image differs from render_image");
+        assert!(
+            img.data == expect.data,
+            "threads {threads}, slots {slots:?}, tile {tile}: image differs from render_image"
+        );
     }
     std::fs::remove_dir_all(&dir).ok();
 }
