@@ -76,10 +76,10 @@ pub struct WorkerArgs {
     /// Render threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Chunks rendered at once on those threads, so that chunk ends do not idle them
-    /// (default: half the threads, at least 2).
-    #[arg(long)]
-    pub slots: Option<usize>,
+    /// Chunks rendered at once on those threads, so that chunk ends do not idle them, 1 to
+    /// 256 (default: half the threads, at least 2).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub slots: Option<u32>,
     #[arg(long, env = "FURNACE_TOKEN")]
     pub token: Option<String>,
     /// Name shown in job status (default: host and process id, and in a container a random
@@ -281,7 +281,7 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
     let cfg = furnace_worker::WorkerConfig {
         link: Arc::new(link),
         threads: a.threads.unwrap_or(0),
-        slots: a.slots.unwrap_or(0),
+        slots: a.slots.unwrap_or(0) as usize,
         name: a.name.unwrap_or_else(|| default_worker_name(&host)),
         // Lease requests wait at the coordinator for work (long polling); this is the pause
         // between two of them.

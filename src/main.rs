@@ -66,10 +66,10 @@ struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Chunks rendered at once on those threads (default: half the threads, at least 2).
-    /// Does not change the image.
-    #[arg(long)]
-    slots: Option<usize>,
+    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, at
+    /// least 2). Does not change the image.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
+    slots: Option<u32>,
     /// Sample seed (default: the scene sampler's seed).
     #[arg(long)]
     seed: Option<u64>,
@@ -225,14 +225,14 @@ fn render(a: RenderArgs) -> Result<()> {
         ..local_settings()
     };
     let (image, stats, estimate, dropped) =
-        render_local(Arc::new(scene), settings, threads, a.slots.unwrap_or(0), &|done, total| {
+        render_local(Arc::new(scene), settings, threads, a.slots.unwrap_or(0) as usize, &|done, total| {
             bar.set_length(total);
             bar.set_position(done)
         })?;
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
     let threads = if threads == 0 { rayon::current_num_threads() } else { threads };
-    let slots = a.slots.unwrap_or_else(|| furnace_worker::auto_slots(threads));
+    let slots = a.slots.map_or_else(|| furnace_worker::auto_slots(threads), |k| k as usize);
     image.write_exr(&out)?;
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;

@@ -60,6 +60,12 @@ fn render_through_the_in_process_farm_equals_the_plain_render_loop() {
             "threads {threads}, slots {slots:?}, tile {tile}: image differs from render_image"
         );
     }
+    // Out of range: a clear error before anything renders.
+    for bad in ["0", "257", "many"] {
+        let o = furnace().args(["render", "--slots", bad]).arg(scenes().join("small.xml")).output().unwrap();
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && stderr.contains("--slots"), "--slots {bad}: {stderr}");
+    }
     std::fs::remove_dir_all(&dir).ok();
 }
 
