@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Multi-core scaling of one furnace binary: `furnace render` at 1, 2, 4, ... threads on each
-# scene (Msamples/s, speed-up over 1 thread, efficiency), then the farm: one coordinator and
+# scene (Msamples/s, speed-up over the first thread count given, efficiency), then the farm: one coordinator and
 # W workers of 1 thread each (and one worker of all threads), wall time from submit to the
 # result on disk, against `furnace render` with as many threads, and whether the bytes agree.
 #
@@ -16,7 +16,7 @@ ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 SCENES="${SCENES:-tests/scenes/cbox.xml:96 tests/scenes/textured.xml:384 tests/scenes/envmap.xml:384 tests/scenes/hair.xml:32 examples/whimsical.xml:24}"
 FARM="${FARM:-tests/scenes/cbox.xml:256:32:64}"
 TMP="$(mktemp -d)"; PIDS=()
-trap 'kill "${PIDS[@]}" 2>/dev/null || true; rm -rf "$TMP"' EXIT
+trap 'kill ${PIDS[@]+"${PIDS[@]}"} 2>/dev/null || true; rm -rf "$TMP"' EXIT
 cd "$ROOT"
 echo "cpu: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores"
 "$F" render tests/scenes/cbox.xml --spp 1 --threads 1 -o "$TMP/x.exr" 2>&1 | grep -m1 -o 'Sobol sets.*' || true
@@ -25,7 +25,7 @@ rate() { sed -n 's/.*: \([0-9.]*\) Msamples\/s.*/\1/p'; }
 best() { sort -g | tail -1; }   # best of REPS: the least disturbed run
 
 echo
-echo "## furnace render: Msamples/s (best of $REPS), speed-up over 1 thread, efficiency"
+echo "## furnace render: Msamples/s (best of $REPS), speed-up over ${THREADS%% *} thread(s), efficiency"
 for entry in $SCENES; do
     scene="${entry%:*}"; spp="${entry##*:}"; base=""
     for t in $THREADS; do
@@ -43,7 +43,12 @@ echo
 echo "## farm: $(basename "$scene" .xml) $spp spp, tile $tile, $chunk spp a chunk; wall seconds from submit to result"
 "$F" serve --data-dir "$TMP/data" --bind 127.0.0.1:0 > "$TMP/serve.out" 2>/dev/null &
 PIDS+=($!)
-until grep -q listening "$TMP/serve.out"; do sleep 0.05; done
+for _ in $(seq 600); do
+    grep -q listening "$TMP/serve.out" && break
+    kill -0 "${PIDS[-1]}" 2>/dev/null || { echo "furnace serve exited before listening" >&2; exit 1; }
+    sleep 0.05
+done
+grep -q listening "$TMP/serve.out" || { echo "furnace serve did not listen within 30 s" >&2; exit 1; }
 URL="$(sed -n 's/listening on //p' "$TMP/serve.out")"
 farm() {  # farm WORKERS THREADS_EACH
     local wp=()
@@ -63,5 +68,5 @@ farm() {  # farm WORKERS THREADS_EACH
         'BEGIN { f -= f0; l -= l0; printf "%2d workers x %2d threads: farm %7.2f s, furnace render --threads %2d %7.2f s, farm/render %.2f, bytes %s\n", w, e, f, w * e, l, f / l, s }'
 }
 for w in $THREADS; do farm "$w" 1; done
-last="${THREADS##* }"; [ "$last" -gt 1 ] && farm 1 "$last"
+most="$(printf '%s\n' $THREADS | sort -n | tail -1)"; [ "$most" -gt 1 ] && farm 1 "$most"
 exit 0

@@ -23,7 +23,8 @@ pub struct ServeArgs {
     /// Workers to run inside this process.
     #[arg(long, default_value_t = 0)]
     pub local_workers: usize,
-    /// Threads per local worker (default: all cores shared).
+    /// Threads per local worker (default: all cores shared); each keeps half its threads'
+    /// worth of chunks in flight, 2 to 16.
     #[arg(long)]
     pub worker_threads: Option<usize>,
     /// Shared token for workers and clients; required unless binding to loopback.
@@ -77,7 +78,8 @@ pub struct WorkerArgs {
     #[arg(long)]
     pub threads: Option<usize>,
     /// Chunks rendered at once on those threads, so that chunk ends do not idle them, 1 to
-    /// 256 (default: half the threads, at least 2).
+    /// 256 (default: half the threads, 2 to 16). Each holds its tile's accumulation and, while
+    /// idle, one lease request open at the coordinator.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
     pub slots: Option<u32>,
     #[arg(long, env = "FURNACE_TOKEN")]

@@ -66,8 +66,8 @@ struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, at
-    /// least 2). Does not change the image.
+    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, 2 to
+    /// 16). Does not change the image.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
     slots: Option<u32>,
     /// Sample seed (default: the scene sampler's seed).
@@ -237,7 +237,7 @@ fn render(a: RenderArgs) -> Result<()> {
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;
     tracing::info!(
-        "rendered {w}x{h}: {} samples ({:.1} spp of at most {spp}) in {secs:.3}s on {threads} threads ({slots} chunks in flight): {:.3} Msamples/s",
+        "rendered {w}x{h}: {} samples ({:.1} spp of at most {spp}) in {secs:.3}s on {threads} threads (up to {slots} chunks in flight): {:.3} Msamples/s",
         stats.samples,
         stats.samples as f64 / (w as f64 * h as f64),
         stats.samples as f64 / secs / 1e6

@@ -59,23 +59,43 @@ pub fn run(cfg: WorkerConfig) -> Result<u64, WorkerError> {
         0 => auto_slots(pool.current_num_threads()),
         n => n,
     };
-    tracing::debug!("{} render threads, {slots} chunks in flight", pool.current_num_threads());
+    tracing::debug!("{} render threads, up to {slots} chunks in flight", pool.current_num_threads());
     let done = std::thread::scope(|s| {
-        let slots: Vec<_> = (0..slots).map(|_| s.spawn(|| slot(&cfg, &pool))).collect();
-        slots.into_iter().map(|h| h.join().unwrap_or(0)).sum()
-    });
+        // A slot the system cannot start a thread for is left out (with a warning), as long
+        // as one runs: fewer chunks in flight, the same results.
+        let mut handles = Vec::with_capacity(slots);
+        for k in 0..slots {
+            match std::thread::Builder::new().name(format!("slot-{k}")).spawn_scoped(s, || slot(&cfg, &pool))
+            {
+                Ok(h) => handles.push(h),
+                Err(e) => {
+                    tracing::warn!("cannot start slot {} of {slots}: {e}; running with {k}", k + 1);
+                    break;
+                }
+            }
+        }
+        if handles.is_empty() {
+            return Err(WorkerError::Pool("cannot start a single slot thread".into()));
+        }
+        Ok(handles.into_iter().map(|h| h.join().unwrap_or(0)).sum())
+    })?;
     Ok(done)
 }
 
-/// Chunks in flight for `threads` render threads: half the threads, at least 2. A chunk is
-/// rendered in bands of two rows (16 for a 32-pixel tile); with too few chunks in flight, the
-/// threads that finish their bands wait for a chunk's last band and its upload before the next
-/// chunk brings work. Measured on 16 cores (docs/BENCHMARKS.md, "Multi-core scaling"): at 16
-/// threads, 8 chunks render 16 to 31% more samples a second than 2, and 4 chunks about half
-/// that.
+/// Chunks in flight for `threads` render threads: half the threads, at least 2 and at most
+/// [`MAX_AUTO_SLOTS`]. A chunk is rendered in bands of two rows (16 for a 32-pixel tile); with
+/// too few chunks in flight, the threads that finish their bands wait for a chunk's last band
+/// and its upload before the next chunk brings work. Measured on 16 cores
+/// (docs/BENCHMARKS.md, "Multi-core scaling"): at 16 threads, 8 chunks render 16 to 31% more
+/// samples a second than 2, and 4 chunks about half that. Each chunk in flight holds its
+/// accumulation (its tile's pixels) and, while idle, one lease request at the coordinator.
 pub fn auto_slots(threads: usize) -> usize {
-    (threads / 2).max(2)
+    (threads / 2).clamp(2, MAX_AUTO_SLOTS)
 }
+
+/// The most chunks [`auto_slots`] keeps in flight: 16 slots of 16 bands keep 64 threads
+/// busy four times over.
+pub const MAX_AUTO_SLOTS: usize = 16;
 
 /// One chunk at a time: lease, render, upload.
 fn slot(cfg: &WorkerConfig, pool: &rayon::ThreadPool) -> u64 {
@@ -125,7 +145,7 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
     let lost = AtomicBool::new(false);
     std::thread::scope(|s| {
         let lost = &lost;
-        s.spawn(move || {
+        let beats = std::thread::Builder::new().name("heartbeat".into()).spawn_scoped(s, move || {
             while let Err(mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(every) {
                 if !link.heartbeat(lease) {
                     lost.store(true, Ordering::SeqCst);
@@ -133,6 +153,11 @@ fn work(cfg: &WorkerConfig, pool: &rayon::ThreadPool, lease: &Lease) -> bool {
                 }
             }
         });
+        if let Err(e) = beats {
+            // Rendered without heartbeats: a chunk longer than its lease is then given to
+            // another worker and this upload refused, which loses time, not results.
+            tracing::warn!(job = %lease.job, chunk = lease.chunk.id, "cannot start the heartbeat thread: {e}");
+        }
         let done = render_and_upload(link, pool, &scene, lease, lost, t);
         drop(tx);
         done
