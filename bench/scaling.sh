@@ -8,12 +8,12 @@
 #   bench/scaling.sh target/release/furnace "1 2" 1     # a quick look on a small machine
 #
 # Scenes and sample counts: SCENES="SCENE.xml:SPP ..." (default below: 5 to 10 s a scene at
-# 1 thread). Farm job: FARM="SCENE.xml:SPP:TILE:CHUNK_SPP". docs/BENCHMARKS.md, "Multi-core
+# 1 thread; SCENES="" measures the farm alone, as bench/farm-overhead.sh does). Farm job: FARM="SCENE.xml:SPP:TILE:CHUNK_SPP". docs/BENCHMARKS.md, "Multi-core
 # scaling", has a 16-core run.
 set -euo pipefail
 F="$(realpath "$1")"; THREADS="${2:-1 2 4 8 16}"; REPS="${3:-2}"
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
-SCENES="${SCENES:-tests/scenes/cbox.xml:96 tests/scenes/textured.xml:384 tests/scenes/envmap.xml:384 tests/scenes/hair.xml:32 examples/whimsical.xml:24}"
+SCENES="${SCENES-tests/scenes/cbox.xml:96 tests/scenes/textured.xml:384 tests/scenes/envmap.xml:384 tests/scenes/hair.xml:32 examples/whimsical.xml:24}"
 FARM="${FARM:-tests/scenes/cbox.xml:256:32:64}"
 TMP="$(mktemp -d)"; PIDS=()
 trap 'kill ${PIDS[@]+"${PIDS[@]}"} 2>/dev/null || true; rm -rf "$TMP"' EXIT
@@ -24,8 +24,8 @@ echo "cpu: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), 
 rate() { sed -n 's/.*: \([0-9.]*\) Msamples\/s.*/\1/p'; }
 best() { sort -g | tail -1; }   # best of REPS: the least disturbed run
 
-echo
-echo "## furnace render: Msamples/s (best of $REPS), speed-up over ${THREADS%% *} thread(s), efficiency"
+[ -z "$SCENES" ] || echo
+[ -z "$SCENES" ] || echo "## furnace render: Msamples/s (best of $REPS), speed-up over ${THREADS%% *} thread(s), efficiency"
 for entry in $SCENES; do
     scene="${entry%:*}"; spp="${entry##*:}"; base=""
     for t in $THREADS; do
