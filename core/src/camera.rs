@@ -5,8 +5,9 @@
 //! The thin lens focuses on the plane z = `focus_distance` and samples the aperture uniformly
 //! (concentric map) without a vignetting weight, again as Mitsuba does.
 
-use glam::{Mat4, Vec2, Vec3};
+use glam::{DMat3, DVec2, DVec3, Mat4, Vec2, Vec3};
 
+use crate::geometry::bvh::Bundle;
 use crate::geometry::Ray;
 use crate::math::square_to_uniform_disk_concentric;
 
@@ -52,6 +53,29 @@ impl Camera {
         let l = square_to_uniform_disk_concentric(u) * lens.aperture_radius;
         let o = Vec3::new(l.x, l.y, 0.0);
         self.finish(o, focus - o)
+    }
+
+    /// What [`PixelBundles::pixel`] needs of the camera, worked out once.
+    pub fn pixel_bundles(&self) -> PixelBundles {
+        let m = self.to_world.as_dmat4();
+        let t = m.w_axis.truncate();
+        let (f, r) = match &self.lens {
+            None => (1.0, 0.0),
+            Some(l) => (l.focus_distance as f64, l.aperture_radius as f64),
+        };
+        let r = r + 1e-5 * (t.length() + r);
+        // Camera-space planes n . p_c + c to world, relative to the camera: (M^-T n) . (p - t) + c.
+        let inv_t = DMat3::from_mat4(m).inverse().transpose();
+        PixelBundles {
+            size: DVec2::new(self.film_size.0 as f64, self.film_size.1 as f64),
+            tan_half: self.tan_half.as_dvec2(),
+            axes: [inv_t.x_axis, inv_t.y_axis, inv_t.z_axis],
+            origin: self.to_world.transform_point3(Vec3::ZERO).to_array(),
+            f,
+            r,
+            // Lens points lie within r (each axis) of the centre: |M l| <= r (|Mx| + |My|).
+            radius: (r * (m.x_axis.truncate().length() + m.y_axis.truncate().length())) as f32,
+        }
     }
 
     /// The world ray from camera-space origin `o` along `d` (not normalised, `d.z > 0`),
@@ -162,4 +186,220 @@ pub(crate) fn from_scene(
         None
     };
     Ok(Camera { to_world, film_size: (film.width, film.height), tan_half, near_clip, far_clip, lens })
+}
+
+/// The bundles of a camera's pixels ([`Camera::pixel_bundles`]).
+#[derive(Clone, Debug)]
+pub struct PixelBundles {
+    size: DVec2,
+    tan_half: DVec2,
+    /// M^-T's columns (M: the camera's rotation), taking camera-space normals to world.
+    axes: [DVec3; 3],
+    /// The camera's position, as its rays have it.
+    origin: [f32; 3],
+    /// Focus distance (1 for a pinhole) and lens radius, grown by the margin.
+    f: f64,
+    r: f64,
+    radius: f32,
+}
+
+impl PixelBundles {
+    /// The bundle that holds every camera ray of film pixel (`x`, `y`) of the full film
+    /// (film positions `[x, x + 1) x [y, y + 1)`, any lens sample), with a margin for the
+    /// rays' rounding: 1/64 of a pixel and 1e-5 in direction, and 1e-5 of the camera's
+    /// distance from the world origin in the lens radius.
+    pub fn pixel(&self, x: u32, y: u32) -> Bundle {
+        // Camera-space direction (z = 1) ranges of the pixel, grown by the margin.
+        let range = |p: f64, n: f64, tan: f64| {
+            let (a, b) = (-(2.0 * p / n - 1.0) * tan, -(2.0 * (p + 1.0) / n - 1.0) * tan);
+            let m = 2.0 * tan / n / 64.0 + 1e-5;
+            (a.min(b) - m, a.max(b) + m)
+        };
+        let (dx0, dx1) = range(x as f64, self.size.x, self.tan_half.x);
+        let (dy0, dy1) = range(y as f64, self.size.y, self.tan_half.y);
+        let (f, r, [ax, ay, az]) = (self.f, self.r, self.axes);
+        // A camera-space plane a . axis + k z + c >= 0, in world space relative to the camera.
+        let world = |a: DVec3, k: f64, c: f64| ((a + az * k).as_vec3().to_array(), c as f32);
+        // At depth z the rays' x spans dx0 z - r |1 - z/f| to dx1 z + r |1 - z/f| (lens
+        // points within r of the axis, focused at depth f): a side's bound is one plane
+        // before the focus and another past it, and every ray lies inside one of the two.
+        let (xl, xh) = ((ax, dx0), (-ax, -dx1));
+        let (yl, yh) = ((ay, dy0), (-ay, -dy1));
+        let mut planes = [([0.0; 3], 0.0); 9];
+        for (s, (a, d)) in [xl, xh, yl, yh].into_iter().enumerate() {
+            planes[2 * s] = world(a, -(d + r / f), r);
+            planes[2 * s + 1] = world(a, -(d - r / f), -r);
+        }
+        planes[8] = world(DVec3::ZERO, 1.0, 0.0);
+        Bundle { planes, origin: self.origin, radius: self.radius }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use glam::{DVec3, Vec2};
+
+    use crate::geometry::bvh::Candidates;
+    use crate::scene::Scene;
+    use crate::testing::Pcg;
+
+    const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
+
+    /// Film and lens samples of a pixel: the pixel's corners and the lens square's (the
+    /// aperture's rim), then random ones.
+    fn samples(rng: &mut Pcg, k: usize) -> (Vec2, Vec2) {
+        let corner = |c: usize| Vec2::new([0.0, ONE_BELOW][c & 1], [0.0, ONE_BELOW][c >> 1 & 1]);
+        if k < 8 {
+            (corner(k), corner(k / 2 + 1))
+        } else {
+            (rng.next_2d(), rng.next_2d())
+        }
+    }
+
+    /// For every `step`-th pixel: every camera ray render_region would trace (pixel corners,
+    /// aperture rim, random) lies in the pixel's bundle, and the gathered leaves find the hit
+    /// the whole tree finds, at the same distance. Returns the pixels whose gathering was
+    /// complete, and the rays that hit something.
+    fn check(scene: &Scene, step: u32, rays: usize) -> (usize, usize) {
+        let (cam, film) = (&scene.camera, &scene.film);
+        let bundles = cam.pixel_bundles();
+        let mut cands = Candidates::default();
+        let mut rng = Pcg::new(7);
+        let (mut complete, mut hits) = (0, 0);
+        for y in (0..film.crop_height).step_by(step as usize) {
+            for x in (0..film.crop_width).step_by(step as usize) {
+                let (px, py) = (x + film.crop_x, y + film.crop_y);
+                let bundle = bundles.pixel(px, py);
+                scene.accel.gather(&bundle, &mut cands);
+                complete += cands.len().is_some() as usize;
+                for k in 0..rays {
+                    let (f, lens_u) = samples(&mut rng, k);
+                    let pos = Vec2::new(px as f32 + f.x, py as f32 + f.y);
+                    let ray = match &cam.lens {
+                        None => cam.ray_pinhole(pos),
+                        Some(lens) => cam.ray_thin_lens(lens, pos, lens_u),
+                    };
+                    let o = DVec3::from_array(bundle.origin.map(f64::from));
+                    assert!((ray.o.as_dvec3() - o).length() <= bundle.radius as f64, "origin outside");
+                    for t in [ray.tmin, 0.1, 1.0, 10.0, 100.0, 1e4] {
+                        // The ray's points in f64, exactly as its f32 origin and direction define them.
+                        let p = ray.o.as_dvec3() + ray.d.as_dvec3() * t.max(ray.tmin) as f64 - o;
+                        let inside = |(n, c): ([f32; 3], f32)| {
+                            DVec3::from_array(n.map(f64::from)).dot(p) + c as f64 >= 0.0
+                        };
+                        assert!(
+                            inside(bundle.planes[8]),
+                            "pixel ({px}, {py}) sample {k}: behind the near plane"
+                        );
+                        for s in 0..4 {
+                            assert!(
+                                inside(bundle.planes[2 * s]) || inside(bundle.planes[2 * s + 1]),
+                                "pixel ({px}, {py}) sample {k} at t = {t}: outside side {s}"
+                            );
+                        }
+                    }
+                    let whole = scene.intersect(&ray);
+                    let among = scene.intersect_among(&ray, &cands);
+                    match (&whole, &among) {
+                        (None, None) => {}
+                        (Some(a), Some(b)) => {
+                            assert_eq!(a.t, b.t, "pixel ({px}, {py}) sample {k}: {ray:?}");
+                            hits += 1;
+                        }
+                        _ => panic!("pixel ({px}, {py}) sample {k}: {ray:?}: {whole:?} against {among:?}"),
+                    }
+                }
+            }
+        }
+        (complete, hits)
+    }
+
+    fn shipped(name: &str) -> Scene {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(name);
+        Scene::load(&path, &[]).unwrap_or_else(|e| panic!("{name}: {e}"))
+    }
+
+    #[test]
+    fn gathered_leaves_find_what_the_tree_finds_on_the_test_scenes() {
+        for (name, step) in [
+            ("tests/scenes/cbox.xml", 5),
+            ("tests/scenes/thinlens.xml", 5),
+            ("tests/scenes/instances.xml", 5),
+            ("tests/scenes/envmap.xml", 5),
+            ("tests/scenes/hair.xml", 9),
+        ] {
+            let mut scene = shipped(name);
+            // Every kernel gathers the same leaves at the same distances.
+            let gathered = |scene: &Scene| {
+                let bundles = scene.camera.pixel_bundles();
+                let mut all = Vec::new();
+                for y in (0..scene.film.crop_height).step_by(step as usize) {
+                    for x in (0..scene.film.crop_width).step_by(step as usize) {
+                        let mut c = Candidates::default();
+                        scene
+                            .accel
+                            .gather(&bundles.pixel(x + scene.film.crop_x, y + scene.film.crop_y), &mut c);
+                        all.push(c);
+                    }
+                }
+                all
+            };
+            let reference = gathered(&scene);
+            for kernel in crate::geometry::bvh::Kernel::available() {
+                scene.accel.set_kernel(kernel);
+                assert!(gathered(&scene) == reference, "{name}: {kernel:?} gathers other leaves");
+            }
+            let (w, h) = (scene.film.crop_width.div_ceil(step), scene.film.crop_height.div_ceil(step));
+            let (complete, hits) = check(&scene, step, 12);
+            // The fast path is taken on many pixels (in fur, where few leaves suffice), and rays
+            // do hit things.
+            assert!(complete as u32 * 4 > w * h, "{name}: {complete} of {} pixels complete", w * h);
+            assert!(hits > 0, "{name}");
+        }
+    }
+
+    /// Far from the world's origin (f32 spacing 1e-3 there), a 2-degree lens and a 170-degree
+    /// pinhole, both looking at spheres and a panel.
+    #[test]
+    fn gathered_leaves_hold_far_from_the_origin_and_at_extreme_fields_of_view() {
+        let scene = |sensor: &str, fov: f32| {
+            let lens = if sensor == "thinlens" {
+                r#"<float name="aperture_radius" value="0.3"/><float name="focus_distance" value="40"/>"#
+            } else {
+                ""
+            };
+            format!(
+                r#"<scene version="3.0.0">
+                <integrator type="path"/>
+                <sensor type="{sensor}">
+                    <float name="fov" value="{fov}"/>
+                    {lens}
+                    <transform name="to_world">
+                        <lookat origin="10000, 5000, -3000" target="10000.3, 5000, -3050" up="0, 1, 0"/>
+                    </transform>
+                    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="32"/></film>
+                </sensor>
+                <shape type="sphere"><point name="center" x="10000" y="5000" z="-3040"/><float name="radius" value="0.4"/></shape>
+                <shape type="sphere"><point name="center" x="10000.6" y="5000.1" z="-3060"/><float name="radius" value="0.5"/></shape>
+                <shape type="sphere"><point name="center" x="10000" y="5000" z="-3000.5"/><float name="radius" value="0.2"/></shape>
+                <shape type="rectangle">
+                    <transform name="to_world"><scale value="3"/><translate x="10000" y="5000" z="-3080"/></transform>
+                </shape>
+                <shape type="rectangle">
+                    <transform name="to_world"><scale value="0.5"/><rotate y="1" angle="80"/><translate x="10001" y="5000" z="-3002"/></transform>
+                </shape>
+            </scene>"#
+            )
+        };
+        for (sensor, fov) in
+            [("thinlens", 2.0), ("perspective", 2.0), ("perspective", 170.0), ("thinlens", 150.0)]
+        {
+            let s = Scene::load_str(&scene(sensor, fov), Path::new("far.xml"), &[])
+                .unwrap_or_else(|e| panic!("{e}"));
+            let (complete, hits) = check(&s, 1, 24);
+            assert!(complete > 0 && hits > 0, "{sensor} {fov}: {complete} complete, {hits} hits");
+        }
+    }
 }

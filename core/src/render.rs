@@ -7,6 +7,7 @@ use glam::Vec2;
 use rayon::prelude::*;
 
 use crate::film::{Accum, Filter, PixelSum};
+use crate::geometry::bvh::Candidates;
 use crate::geometry::RayDifferentials;
 use crate::integrator::{path, Stats};
 use crate::sampler::PixelSeeds;
@@ -81,9 +82,13 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
     let own_pixel = matches!(filter, Filter::Box { radius } if radius == 0.5);
     let radius = filter.radius();
     let (w, h) = (film.crop_width as i64, film.crop_height as i64);
+    let mut cands = Candidates::default();
+    let bundles = cam.pixel_bundles();
     for y in r.y0..r.y1 {
         for x in r.x0..r.x1 {
             let (fx_px, fy_px) = (x + film.crop_x, y + film.crop_y);
+            // The leaves this pixel's camera rays may hit, gathered once for all its samples.
+            scene.accel.gather(&bundles.pixel(fx_px, fy_px), &mut cands);
             let mut seeds = PixelSeeds::new(seed, fx_px, fy_px);
             // With a box filter of radius 0.5 the pixel's own sums, added once at its end.
             let mut own = PixelSum::default();
@@ -106,7 +111,7 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                     rx: camera_ray(pos + Vec2::new(FOOTPRINT_PIXELS, 0.0)),
                     ry: camera_ray(pos + Vec2::new(0.0, FOOTPRINT_PIXELS)),
                 });
-                let l = path::li(scene, ray, diff.as_ref(), &mut s, &mut st);
+                let l = path::li(scene, ray, diff.as_ref(), Some(&cands), &mut s, &mut st);
                 st.samples += 1;
                 if let Some(why) = crate::film::drop_reason(l) {
                     acc.count_dropped(x, y, why);

@@ -307,13 +307,56 @@ fn test_scalar(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WID
     (mask & node.used, tn)
 }
 
+/// Which of `node`'s children `bundle` may meet (bit `i` for child `i`), and a lower bound
+/// of the distance to each along its rays. The children's planes are decoded as the
+/// traversal decodes them, then taken relative to the bundle's origin (one rounding, within
+/// 2^-24 of the distance from it); a child is outside a plane if even its corner farthest
+/// along the normal is. The distance is that from the origin to the box, less the origins'
+/// spread, rounded down past f32's rounding and the rays' direction length (1 +- 2^-23).
+#[inline(always)]
+fn bundle_test_scalar(node: &Node, bundle: &Bundle) -> (u32, [f32; WIDTH]) {
+    let o = bundle.origin;
+    let mut bx = [[0f32; WIDTH]; 6];
+    for (p, planes) in bx.iter_mut().enumerate() {
+        let a = p / 2;
+        for i in 0..WIDTH {
+            planes[i] = (node.origin[a] + node.planes[p][i] as f32 * node.scale[a]) - o[a];
+        }
+    }
+    let mut outside = [0u32; 9];
+    for (k, &(n, c)) in bundle.planes.iter().enumerate() {
+        let pick = |a: usize| if n[a] >= 0.0 { &bx[2 * a + 1] } else { &bx[2 * a] };
+        let (px, py, pz) = (pick(0), pick(1), pick(2));
+        for i in 0..WIDTH {
+            outside[k] |= ((((n[0] * px[i] + n[1] * py[i]) + n[2] * pz[i]) + c < 0.0) as u32) << i;
+        }
+    }
+    let mut near = [0f32; WIDTH];
+    for (i, near) in near.iter_mut().enumerate() {
+        let g = |a: usize| max_ps(max_ps(bx[2 * a][i], -bx[2 * a + 1][i]), 0.0);
+        let (gx, gy, gz) = (g(0), g(1), g(2));
+        *near = (((gx * gx + gy * gy) + gz * gz).sqrt() - bundle.radius) * (1.0 - 1e-5);
+    }
+    (node.used & !bundle_culled(&outside), near)
+}
+
+/// The children outside the near plane, or outside both planes of some side.
+#[inline(always)]
+fn bundle_culled(outside: &[u32; 9]) -> u32 {
+    outside[8]
+        | (outside[0] & outside[1])
+        | (outside[2] & outside[3])
+        | (outside[4] & outside[5])
+        | (outside[6] & outside[7])
+}
+
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use std::arch::x86_64::*;
 
     use std::mem::MaybeUninit;
 
-    use super::{BoxRay, Node, QuadHits, TriRay, FAR_SCALE, WIDTH};
+    use super::{bundle_culled, BoxRay, Bundle, Node, QuadHits, TriRay, FAR_SCALE, WIDTH};
     use crate::math::gamma;
 
     /// [`super::super::intersect_triangle`] on four lanes: the same IEEE operations in the
@@ -476,6 +519,54 @@ mod x86 {
         _mm256_storeu_ps(tn.as_mut_ptr(), near);
         let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, _mm256_mul_ps(far, _mm256_set1_ps(FAR_SCALE)));
         (_mm256_movemask_ps(hit) as u32 & node.used, tn)
+    }
+
+    /// [`super::bundle_test_scalar`] in one 256-bit register: the same IEEE operations in
+    /// the same order.
+    #[inline(always)]
+    pub unsafe fn bundle_test_avx2(node: &Node, bundle: &Bundle) -> (u32, [f32; WIDTH]) {
+        let o = bundle.origin;
+        let plane = |p: usize| {
+            let a = p / 2;
+            let q = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_loadl_epi64(node.planes[p].as_ptr().cast())));
+            let decoded = _mm256_add_ps(
+                _mm256_set1_ps(node.origin[a]),
+                _mm256_mul_ps(q, _mm256_set1_ps(node.scale[a])),
+            );
+            _mm256_sub_ps(decoded, _mm256_set1_ps(o[a]))
+        };
+        let bx = [plane(0), plane(1), plane(2), plane(3), plane(4), plane(5)];
+        let mut outside = [0u32; 9];
+        for (k, &(n, c)) in bundle.planes.iter().enumerate() {
+            let pick = |a: usize| if n[a] >= 0.0 { bx[2 * a + 1] } else { bx[2 * a] };
+            let v = _mm256_add_ps(
+                _mm256_add_ps(
+                    _mm256_add_ps(
+                        _mm256_mul_ps(_mm256_set1_ps(n[0]), pick(0)),
+                        _mm256_mul_ps(_mm256_set1_ps(n[1]), pick(1)),
+                    ),
+                    _mm256_mul_ps(_mm256_set1_ps(n[2]), pick(2)),
+                ),
+                _mm256_set1_ps(c),
+            );
+            outside[k] = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(v, _mm256_setzero_ps())) as u32;
+        }
+        let zero = _mm256_setzero_ps();
+        let g = |a: usize| {
+            let neg_hi = _mm256_xor_ps(bx[2 * a + 1], _mm256_set1_ps(-0.0));
+            // max_ps(max_ps(lo, -hi), 0): maxps(a, b) gives b where a > b fails, as max_ps.
+            _mm256_max_ps(_mm256_max_ps(bx[2 * a], neg_hi), zero)
+        };
+        let (gx, gy, gz) = (g(0), g(1), g(2));
+        let sq =
+            _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(gx, gx), _mm256_mul_ps(gy, gy)), _mm256_mul_ps(gz, gz));
+        let near = _mm256_mul_ps(
+            _mm256_sub_ps(_mm256_sqrt_ps(sq), _mm256_set1_ps(bundle.radius)),
+            _mm256_set1_ps(1.0 - 1e-5),
+        );
+        let mut out = [0f32; WIDTH];
+        _mm256_storeu_ps(out.as_mut_ptr(), near);
+        (node.used & !bundle_culled(&outside), out)
     }
 }
 
@@ -1124,57 +1215,8 @@ impl Accel {
         let mut cur = 0u32; // the root
         loop {
             if cur & LEAF != 0 {
-                let first = cur & ((1 << FIRST_BITS) - 1);
-                let count = ((cur >> FIRST_BITS) & 3) + 1;
-                // A leaf of triangles is tested together (x86 kernels), unless a lane's ray
-                // passes exactly through an edge; the lanes that hit are then taken in order,
-                // each against the closest hit so far, as the loop over primitives would.
-                #[cfg(target_arch = "x86_64")]
-                let quad = if T::QUADS && cur & TRI_LEAF != 0 {
-                    let slot0 = self.prims.get_unchecked(first as usize).index as usize;
-                    // SAFETY: the leaf's block, and at least three floats after it.
-                    let block = self.tris.data.as_ptr().add(9 * slot0);
-                    x86::quad_sse(block, count as usize, &tri_ray, tmin, tmax, &mut hits)
-                } else {
-                    None
-                };
-                #[cfg(not(target_arch = "x86_64"))]
-                let quad: Option<u32> = {
-                    let _ = (&tri_ray, &mut hits); // no 4-lane test here: one at a time
-                    None
-                };
-                if let Some(mut mask) = quad {
-                    if mask != 0 {
-                        // SAFETY: `quad` wrote `hits`, as some lane hit.
-                        let h = hits.assume_init_ref();
-                        while mask != 0 {
-                            let j = mask.trailing_zeros() as usize;
-                            mask &= mask - 1;
-                            if h.within(j, tmax) && h.t[j] < tmax {
-                                tmax = h.t[j];
-                                q.best = Some((first + j as u32, Vec2::new(h.b1[j], h.b2[j])));
-                                if ANY {
-                                    return tmax;
-                                }
-                            }
-                        }
-                    }
-                } else {
-                    let skip = if self.curves { self.curve_misses(q, first, count) } else { 0 };
-                    for (j, k) in (first..first + count).enumerate() {
-                        if skip >> j & 1 != 0 {
-                            continue;
-                        }
-                        if let Some((t, aux)) = self.hit::<ANY>(q, k as usize, tmax) {
-                            if t < tmax {
-                                tmax = t;
-                                q.best = Some((k, aux));
-                                if ANY {
-                                    return t;
-                                }
-                            }
-                        }
-                    }
+                if self.test_leaf::<T, ANY>(q, cur, &tri_ray, tmin, &mut tmax, &mut hits) {
+                    return tmax;
                 }
             } else {
                 let node = self.nodes.get_unchecked(cur as usize);
@@ -1225,6 +1267,216 @@ impl Accel {
                 }
             }
         }
+    }
+
+    /// Tests the primitives of leaf `cur` against `q`'s ray, updating `tmax` and `q.best` with
+    /// every closer hit; true once a hit is found, if `ANY` (a shadow ray is then done).
+    ///
+    /// # Safety
+    /// The CPU must run `T`'s instructions; `cur` must be a leaf of this tree.
+    #[inline(always)]
+    unsafe fn test_leaf<T: BoxTest, const ANY: bool>(
+        &self,
+        q: &mut Query,
+        cur: u32,
+        tri_ray: &TriRay,
+        tmin: f32,
+        tmax: &mut f32,
+        hits: &mut MaybeUninit<QuadHits>,
+    ) -> bool {
+        let first = cur & ((1 << FIRST_BITS) - 1);
+        let count = ((cur >> FIRST_BITS) & 3) + 1;
+        // A leaf of triangles is tested together (x86 kernels), unless a lane's ray
+        // passes exactly through an edge; the lanes that hit are then taken in order,
+        // each against the closest hit so far, as the loop over primitives would.
+        #[cfg(target_arch = "x86_64")]
+        let quad = if T::QUADS && cur & TRI_LEAF != 0 {
+            let slot0 = self.prims.get_unchecked(first as usize).index as usize;
+            // SAFETY: the leaf's block, and at least three floats after it.
+            let block = self.tris.data.as_ptr().add(9 * slot0);
+            x86::quad_sse(block, count as usize, tri_ray, tmin, *tmax, hits)
+        } else {
+            None
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let quad: Option<u32> = {
+            let _ = (tri_ray, &hits); // no 4-lane test here: one at a time
+            None
+        };
+        if let Some(mut mask) = quad {
+            if mask != 0 {
+                // SAFETY: `quad` wrote `hits`, as some lane hit.
+                let h = hits.assume_init_ref();
+                while mask != 0 {
+                    let j = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
+                    if h.within(j, *tmax) && h.t[j] < *tmax {
+                        *tmax = h.t[j];
+                        q.best = Some((first + j as u32, Vec2::new(h.b1[j], h.b2[j])));
+                        if ANY {
+                            return true;
+                        }
+                    }
+                }
+            }
+        } else {
+            let skip = if self.curves { self.curve_misses(q, first, count) } else { 0 };
+            for (j, k) in (first..first + count).enumerate() {
+                if skip >> j & 1 != 0 {
+                    continue;
+                }
+                if let Some((t, aux)) = self.hit::<ANY>(q, k as usize, *tmax) {
+                    if t < *tmax {
+                        *tmax = t;
+                        q.best = Some((k, aux));
+                        if ANY {
+                            return true;
+                        }
+                    }
+                }
+            }
+        }
+        false
+    }
+    /// Gathers into `out` the leaves whose boxes `bundle` may meet, nearest first by a lower
+    /// bound of the distance along any of its rays; gives up (`out.complete` false) past
+    /// [`MAX_CANDIDATES`] leaves or [`MAX_BUNDLE_NODES`] nodes, where tracing each ray through
+    /// the tree is cheaper. Which leaves, and their order, depend only on the bundle (every
+    /// kernel computes the same IEEE operations).
+    pub fn gather(&self, bundle: &Bundle, out: &mut Candidates) {
+        // SAFETY: `self.kernel` is one that this CPU runs (`detect`, `set_kernel`).
+        #[cfg(target_arch = "x86_64")]
+        if self.kernel == Kernel::Avx2 {
+            unsafe { self.gather_avx(bundle, out) };
+            return;
+        }
+        self.gather_with(out, |node| bundle_test_scalar(node, bundle));
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn gather_avx(&self, bundle: &Bundle, out: &mut Candidates) {
+        self.gather_with(out, |node| x86::bundle_test_avx2(node, bundle));
+    }
+
+    /// [`Accel::gather`] with `test` telling which of a node's children the bundle meets and
+    /// how near.
+    #[inline(always)]
+    fn gather_with(&self, out: &mut Candidates, test: impl Fn(&Node) -> (u32, [f32; WIDTH])) {
+        out.leaves.clear();
+        out.complete = false;
+        if self.nodes.is_empty() {
+            out.complete = true;
+            return;
+        }
+        let mut stack = [0u32; MAX_BUNDLE_NODES];
+        let (mut sp, mut visited) = (1, 0);
+        while sp > 0 {
+            sp -= 1;
+            visited += 1;
+            let node = &self.nodes[stack[sp] as usize];
+            let (mut mask, near) = test(node);
+            while mask != 0 {
+                let i = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                let child = node.child[i];
+                if child & LEAF != 0 {
+                    if out.leaves.len() == MAX_CANDIDATES {
+                        return;
+                    }
+                    out.leaves.push((near[i], child));
+                } else {
+                    if visited + sp >= MAX_BUNDLE_NODES {
+                        return;
+                    }
+                    stack[sp] = child;
+                    sp += 1;
+                }
+            }
+        }
+        out.leaves.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        out.complete = true;
+    }
+
+    /// The closest hit along `ray`, a ray of the bundle that `cands` was gathered for
+    /// ([`Accel::gather`]): only its leaves are tested, nearest first, until the next one
+    /// lies past the closest hit. The same hit as [`Accel::intersect`] (up to which of two
+    /// primitives at exactly the same distance is reported).
+    pub fn intersect_among(&self, shapes: &[Shape], ray: &Ray, cands: &Candidates) -> Option<Interaction> {
+        if !cands.complete {
+            return self.intersect(shapes, ray);
+        }
+        let mut q = Query::new(shapes, ray);
+        // SAFETY: `self.kernel` is one that this CPU runs (`detect`, `set_kernel`).
+        let t = unsafe {
+            match self.kernel {
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Avx2 => self.among_avx(&mut q, &cands.leaves),
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Sse => self.among::<SseTest>(&mut q, &cands.leaves),
+                _ => self.among::<ScalarTest>(&mut q, &cands.leaves),
+            }
+        };
+        let (k, aux) = q.best?;
+        Some(self.interaction(shapes, k, ray, t, aux, q.inner.get()))
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn among_avx(&self, q: &mut Query, leaves: &[(f32, u32)]) -> f32 {
+        self.among::<AvxTest>(q, leaves)
+    }
+
+    /// Tests `leaves` (nearest first) against `q`'s ray until the next lies past the closest
+    /// hit; returns its distance.
+    ///
+    /// # Safety
+    /// The CPU must run `T`'s instructions; `leaves` must be leaves of this tree.
+    #[inline(always)]
+    unsafe fn among<T: BoxTest>(&self, q: &mut Query, leaves: &[(f32, u32)]) -> f32 {
+        let tri_ray = TriRay::new(q.ray, &q.pre);
+        let mut hits = MaybeUninit::<QuadHits>::uninit();
+        let tmin = q.ray.tmin;
+        let mut tmax = q.ray.tmax;
+        for &(near, leaf) in leaves {
+            if near > tmax {
+                break;
+            }
+            self.test_leaf::<T, false>(q, leaf, &tri_ray, tmin, &mut tmax, &mut hits);
+        }
+        tmax
+    }
+}
+
+/// Most leaves [`Accel::gather`] keeps for one bundle.
+pub const MAX_CANDIDATES: usize = 16;
+/// Most nodes [`Accel::gather`] visits (or holds pending) for one bundle.
+pub const MAX_BUNDLE_NODES: usize = 16;
+
+/// A bundle of rays: every ray whose origin lies within `radius` of `origin` and whose points
+/// p stay on the inner side (`n . (p - origin) + c >= 0`) of `planes[8]` and, for each of
+/// four sides, of at least one of the side's two planes (`planes[2 s]`, `planes[2 s + 1]`).
+/// Relative to `origin`, so that f32 keeps the planes' precision near it. A pixel's camera
+/// rays, pinhole or thin lens, form one ([`crate::camera::PixelBundles::pixel`]).
+#[derive(Clone, Debug)]
+pub struct Bundle {
+    pub planes: [([f32; 3], f32); 9],
+    pub origin: [f32; 3],
+    pub radius: f32,
+}
+
+/// The leaves of one bundle, nearest first ([`Accel::gather`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Candidates {
+    leaves: Vec<(f32, u32)>,
+    /// Whether `leaves` holds every leaf the bundle meets (else rays are traced whole).
+    complete: bool,
+}
+
+impl Candidates {
+    /// How many leaves, if the gathering was complete.
+    pub fn len(&self) -> Option<usize> {
+        self.complete.then_some(self.leaves.len())
     }
 }
 

@@ -9,6 +9,7 @@ use glam::Vec2;
 
 use super::Stats;
 use crate::bsdf::Bsdf;
+use crate::geometry::bvh::Candidates;
 use crate::geometry::{Ray, RayDifferentials};
 use crate::math::{mis_power, Rgb};
 use crate::sampler::SampleStream;
@@ -24,11 +25,13 @@ const REUSE_LIGHTS: usize = 16;
 const MAX_PASSES: u32 = 64;
 
 /// Radiance arriving along `ray`. `diff`: the camera ray's differentials, when the plan asks
-/// for texture footprints (used at the first hit).
+/// for texture footprints (used at the first hit). `first`: the leaves that `ray` may hit,
+/// when it is a camera ray of a pixel whose leaves were gathered ([`Scene::intersect_among`]).
 pub fn li(
     scene: &Scene,
     mut ray: Ray,
     diff: Option<&RayDifferentials>,
+    mut first: Option<&Candidates>,
     s: &mut SampleStream,
     st: &mut Stats,
 ) -> Rgb {
@@ -65,7 +68,11 @@ pub fn li(
         let show_emitters = !(settings.hide_emitters && depth == 0);
         // Without light sampling at the previous vertex, emission found here is unweighted.
         let unweighted = depth == 0 || prev_delta || !plan.light_sampling;
-        let Some(it) = scene.intersect(&ray) else {
+        let hit = match first.take() {
+            Some(cands) => scene.intersect_among(&ray, cands),
+            None => scene.intersect(&ray),
+        };
+        let Some(it) = hit else {
             if plan.escaped_rays_lookup && show_emitters {
                 st.escaped_lookups += 1;
                 for &k in &scene.infinite_lights {

@@ -187,6 +187,17 @@ impl Scene {
         self.accel.intersect(&self.shapes, ray)
     }
 
+    /// [`Scene::intersect`] for a ray of the bundle that `cands` was gathered for
+    /// ([`crate::geometry::Accel::gather`]).
+    #[inline]
+    pub fn intersect_among(
+        &self,
+        ray: &Ray,
+        cands: &crate::geometry::bvh::Candidates,
+    ) -> Option<Interaction> {
+        self.accel.intersect_among(&self.shapes, ray, cands)
+    }
+
     #[inline]
     pub fn occluded(&self, ray: &Ray) -> bool {
         self.accel.occluded(&self.shapes, ray)
