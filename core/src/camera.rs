@@ -206,13 +206,17 @@ pub struct PixelBundles {
 impl PixelBundles {
     /// The bundle that holds every camera ray of film pixel (`x`, `y`) of the full film
     /// (film positions `[x, x + 1) x [y, y + 1)`, any lens sample), with a margin for the
-    /// rays' rounding: 1/64 of a pixel and 1e-5 in direction, and 1e-5 of the camera's
-    /// distance from the world origin in the lens radius.
+    /// rays' rounding: 1/64 of a pixel and 1e-5 (1 + s^2) in direction (s: the rays' slope),
+    /// and 1e-5 of the camera's distance from the world origin in the lens radius.
     pub fn pixel(&self, x: u32, y: u32) -> Bundle {
         // Camera-space direction (z = 1) ranges of the pixel, grown by the margin.
+        // The margin grows with the rays' slope s against the view axis: a ray's f32 rounding
+        // is relative to its length, about (1 + s) times its depth, and a lens far wider than
+        // its focus distance makes s large however narrow the field of view.
         let range = |p: f64, n: f64, tan: f64| {
             let (a, b) = (-(2.0 * p / n - 1.0) * tan, -(2.0 * (p + 1.0) / n - 1.0) * tan);
-            let m = 2.0 * tan / n / 64.0 + 1e-5;
+            let slope = a.abs().max(b.abs()) + self.r / self.f;
+            let m = 2.0 * tan / n / 64.0 + 1e-5 * (1.0 + slope * slope);
             (a.min(b) - m, a.max(b) + m)
         };
         let (dx0, dx1) = range(x as f64, self.size.x, self.tan_half.x);
@@ -251,8 +255,13 @@ mod tests {
     /// aperture's rim), then random ones.
     fn samples(rng: &mut Pcg, k: usize) -> (Vec2, Vec2) {
         let corner = |c: usize| Vec2::new([0.0, ONE_BELOW][c & 1], [0.0, ONE_BELOW][c >> 1 & 1]);
+        // The lens square's edge midpoints: the aperture's rim on its axes.
+        let rim =
+            [Vec2::new(0.5, 0.0), Vec2::new(0.5, ONE_BELOW), Vec2::new(0.0, 0.5), Vec2::new(ONE_BELOW, 0.5)];
         if k < 8 {
             (corner(k), corner(k / 2 + 1))
+        } else if k < 16 {
+            (corner(k), rim[k % 4])
         } else {
             (rng.next_2d(), rng.next_2d())
         }
@@ -400,6 +409,32 @@ mod tests {
                 .unwrap_or_else(|e| panic!("{e}"));
             let (complete, hits) = check(&s, 1, 24);
             assert!(complete > 0 && hits > 0, "{sensor} {fov}: {complete} complete, {hits} hits");
+        }
+    }
+
+    /// A lens 10,000 times wider than its focus distance: its rays run nearly across the view
+    /// axis, and the bundle's margin must follow their slope.
+    #[test]
+    fn gathered_leaves_hold_for_a_lens_far_wider_than_its_focus_distance() {
+        for focus in ["1e-4", "1e-3", "1e-5"] {
+            let xml = format!(
+                r#"<scene version="3.0.0">
+                <integrator type="path"/>
+                <sensor type="thinlens">
+                    <float name="fov" value="40"/>
+                    <float name="aperture_radius" value="1"/>
+                    <float name="focus_distance" value="{focus}"/>
+                    <transform name="to_world"><lookat origin="0, 0, 0" target="1, 0.7, 0.4" up="0.3, 1, 0.2"/></transform>
+                    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+                </sensor>
+                <shape type="sphere"><point name="center" x="3" y="2" z="1"/><float name="radius" value="1"/></shape>
+                <shape type="sphere"><point name="center" x="-40" y="60" z="-7"/><float name="radius" value="20"/></shape>
+                <shape type="sphere"><point name="center" x="500" y="-800" z="90"/><float name="radius" value="200"/></shape>
+            </scene>"#
+            );
+            let s = Scene::load_str(&xml, Path::new("steep.xml"), &[]).unwrap_or_else(|e| panic!("{e}"));
+            let (_, hits) = check(&s, 1, 24);
+            assert!(hits > 0, "focus {focus}");
         }
     }
 }
