@@ -1338,6 +1338,7 @@ impl Accel {
         }
         false
     }
+
     /// Gathers into `out` the leaves whose boxes `bundle` may meet, nearest first by a lower
     /// bound of the distance along any of its rays; gives up (`out.complete` false) past
     /// [`MAX_CANDIDATES`] leaves or [`MAX_BUNDLE_NODES`] nodes, where tracing each ray through
@@ -1449,9 +1450,9 @@ impl Accel {
 }
 
 /// Most leaves [`Accel::gather`] keeps for one bundle.
-pub const MAX_CANDIDATES: usize = 16;
+const MAX_CANDIDATES: usize = 16;
 /// Most nodes [`Accel::gather`] visits (or holds pending) for one bundle.
-pub const MAX_BUNDLE_NODES: usize = 16;
+const MAX_BUNDLE_NODES: usize = 16;
 
 /// A bundle of rays: every ray whose origin lies within `radius` of `origin` and whose points
 /// p stay on the inner side (`n . (p - origin) + c >= 0`) of `planes[8]` and, for each of
