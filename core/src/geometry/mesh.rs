@@ -4,7 +4,7 @@ use std::path::Path;
 
 use glam::{Mat4, Vec2, Vec3, Vec3A};
 
-use crate::math::gamma;
+use crate::math::{gamma, Frame};
 
 /// A world-space triangle mesh. `normals` and `uvs` are either empty or one per vertex.
 #[derive(Clone, Debug, Default)]
@@ -13,6 +13,24 @@ pub struct Mesh {
     pub normals: Vec<Vec3>,
     pub uvs: Vec<Vec2>,
     pub tris: Vec<[u32; 3]>,
+    /// For a small flat-shaded mesh (no vertex normals, at most [`FACES_MAX`] triangles), what
+    /// [`Mesh::surface`] computes the same for every point of a triangle, computed once
+    /// ([`Mesh::precompute_faces`]); empty otherwise.
+    pub faces: Vec<Face>,
+}
+
+/// Triangles up to which a flat-shaded mesh keeps its [`Face`]s (108 bytes a triangle).
+pub const FACES_MAX: usize = 1024;
+
+/// A flat-shaded triangle's constants: its unit normal, dp/du and dp/dv, and its shading
+/// frame with the normal as it is and flipped (`flip_normals`), each as
+/// [`Frame::from_normal_tangent`] makes it, so a hit's interaction has the same bits either way.
+#[derive(Clone, Copy, Debug)]
+pub struct Face {
+    pub ng: Vec3,
+    pub dpdu: Vec3,
+    pub dpdv: Vec3,
+    pub frames: [Frame; 2],
 }
 
 /// Why a mesh file could not be used.
@@ -48,29 +66,22 @@ impl Mesh {
         // In Vec3A (SIMD lanes): lane for lane the same operations as Vec3's, so the same bits,
         // in fewer instructions than Vec3's shuffling. (A build with FMA enabled globally would
         // fuse Vec3A's cross product and change its last bit.)
-        let [ia, ib, ic] = self.tris[i].map(|k| k as usize);
-        let (p0, p1, p2) = (
-            Vec3A::from(self.positions[ia]),
-            Vec3A::from(self.positions[ib]),
-            Vec3A::from(self.positions[ic]),
-        );
+        let ([ia, ib, ic], [p0, p1, p2]) = self.corners(i);
+        let (p, p_err, uv) = self.point_uv_at([ia, ib, ic], [p0, p1, p2], b1, b2);
         let b0 = 1.0 - b1 - b2;
-        let p = p0 * b0 + p1 * b1 + p2 * b2;
-        let p_err = ((p0 * b0).abs() + (p1 * b1).abs() + (p2 * b2).abs()) * gamma(7);
         let e1 = p1 - p0;
         let e2 = p2 - p0;
         let mut ng = e1.cross(e2).normalize_or_zero();
-        let (uv, dpdu, dpdv) = if self.uvs.is_empty() {
-            (Vec2::new(b1, b2), e1, e2)
+        let (dpdu, dpdv) = if self.uvs.is_empty() {
+            (e1, e2)
         } else {
             let (t0, t1, t2) = (self.uvs[ia], self.uvs[ib], self.uvs[ic]);
-            let uv = t0 * b0 + t1 * b1 + t2 * b2;
             let (d1, d2) = (t1 - t0, t2 - t0);
             let det = d1.x * d2.y - d1.y * d2.x;
             if det.abs() > 1e-12 {
-                (uv, (e1 * d2.y - e2 * d1.y) / det, (e2 * d1.x - e1 * d2.x) / det)
+                ((e1 * d2.y - e2 * d1.y) / det, (e2 * d1.x - e1 * d2.x) / det)
             } else {
-                (uv, e1, e2)
+                (e1, e2)
             }
         };
         let ns = if self.normals.is_empty() {
@@ -91,6 +102,57 @@ impl Mesh {
             }
         };
         (p.into(), p_err.into(), ng.into(), ns.into(), uv, dpdu.into(), dpdv.into())
+    }
+
+    /// Point, error bound and uv at barycentrics (b1, b2) of triangle `i`, as
+    /// [`Mesh::surface`] computes them.
+    #[inline(always)]
+    pub fn point_uv(&self, i: usize, b1: f32, b2: f32) -> (Vec3, Vec3, Vec2) {
+        let (index, p) = self.corners(i);
+        let (p, p_err, uv) = self.point_uv_at(index, p, b1, b2);
+        (p.into(), p_err.into(), uv)
+    }
+
+    /// Triangle `i`'s vertex indices and positions.
+    #[inline(always)]
+    fn corners(&self, i: usize) -> ([usize; 3], [Vec3A; 3]) {
+        let index = self.tris[i].map(|k| k as usize);
+        (index, index.map(|k| Vec3A::from(self.positions[k])))
+    }
+
+    /// [`Mesh::point_uv`] of the triangle with vertices `index` at `p`.
+    #[inline(always)]
+    fn point_uv_at(&self, index: [usize; 3], p: [Vec3A; 3], b1: f32, b2: f32) -> (Vec3A, Vec3A, Vec2) {
+        let [p0, p1, p2] = p;
+        let b0 = 1.0 - b1 - b2;
+        let p = p0 * b0 + p1 * b1 + p2 * b2;
+        let p_err = ((p0 * b0).abs() + (p1 * b1).abs() + (p2 * b2).abs()) * gamma(7);
+        let uv = if self.uvs.is_empty() {
+            Vec2::new(b1, b2)
+        } else {
+            let [ia, ib, ic] = index;
+            self.uvs[ia] * b0 + self.uvs[ib] * b1 + self.uvs[ic] * b2
+        };
+        (p, p_err, uv)
+    }
+
+    /// Computes [`Mesh::faces`] if the mesh is flat-shaded and small; call it once the mesh is
+    /// in place (after its transform). Returns the bytes the faces take.
+    pub fn precompute_faces(&mut self) -> usize {
+        self.faces = Vec::new();
+        if !self.normals.is_empty() || self.tris.len() > FACES_MAX {
+            return 0;
+        }
+        self.faces = (0..self.tris.len())
+            .map(|i| {
+                // Without vertex normals the shading normal is the geometric one, and neither
+                // it nor dp/du, dp/dv depends on where in the triangle the point lies.
+                let (_, _, ng, ns, _, dpdu, dpdv) = self.surface(i, 0.0, 0.0);
+                let frames = [Frame::from_normal_tangent(ns, dpdu), Frame::from_normal_tangent(-ns, dpdu)];
+                Face { ng, dpdu, dpdv, frames }
+            })
+            .collect();
+        std::mem::size_of_val(self.faces.as_slice())
     }
 
     /// Applies `to_world` to positions and (by the inverse transpose) to normals.
@@ -164,6 +226,7 @@ impl Mesh {
             normals: Vec::new(),
             uvs: vec![Vec2::new(0.0, 0.0), Vec2::new(1.0, 0.0), Vec2::new(1.0, 1.0), Vec2::new(0.0, 1.0)],
             tris: vec![[0, 1, 2], [0, 2, 3]],
+            faces: Vec::new(),
         }
     }
 
@@ -471,6 +534,7 @@ use crate::scene::build::{Builder, R};
 pub(crate) fn builtin_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::Geometry> {
     let mut m = if b.doc.obj(i).plugin == "cube" { Mesh::cube() } else { Mesh::rectangle() };
     m.transform_flat(to_world);
+    m.precompute_faces();
     Ok(super::Geometry::Mesh(m))
 }
 
@@ -509,6 +573,8 @@ pub(crate) fn file_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::
     b.budget.charge(&format!("mesh '{rel}'"), 0, kept as u64).map_err(|e| b.err(fpos, e))?;
     b.assets.push(path);
     m.transform(to_world);
+    let faces = m.precompute_faces();
+    b.budget.charge(&format!("mesh '{rel}'"), 0, faces as u64).map_err(|e| b.err(fpos, e))?;
     Ok(super::Geometry::Mesh(m))
 }
 

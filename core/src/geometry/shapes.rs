@@ -283,7 +283,18 @@ impl Shape {
     /// Full surface information for a hit found by [`Shape::intersect`].
     pub fn interaction(&self, shape: u32, prim: usize, ray: &Ray, t: f32, aux: Vec2) -> Interaction {
         let (p, p_err, mut ng, mut ns, uv, dpdu, dpdv) = match &self.geometry {
-            Geometry::Mesh(m) => m.surface(prim, aux.x, aux.y),
+            Geometry::Mesh(m) => match m.faces.get(prim) {
+                Some(f) => {
+                    // A flat-shaded triangle's constants, as computed below for other hits.
+                    let (p, p_err, uv) = m.point_uv(prim, aux.x, aux.y);
+                    let flip = self.flip_normals;
+                    let ng = if flip { -f.ng } else { f.ng };
+                    let frame = f.frames[flip as usize];
+                    let (dpdu, dpdv) = (f.dpdu, f.dpdv);
+                    return Interaction { p, p_err, t, ng, frame, uv, dpdu, dpdv, shape, prim: prim as u32 };
+                }
+                None => m.surface(prim, aux.x, aux.y),
+            },
             Geometry::Curves(c) => {
                 let seg = &c.segments[prim];
                 let piece = super::curves::Piece::from_index(aux.y as u32);
@@ -357,8 +368,16 @@ impl Shape {
             Geometry::Mesh(m) => {
                 let b = crate::math::square_to_uniform_triangle(u);
                 // Emission and its cosine follow the shading normal, as for hits.
-                let (p, p_err, _ng, ns, uv, _, _) = m.surface(prim, b.x, b.y);
-                (p, p_err, ns, uv)
+                match m.faces.get(prim) {
+                    Some(f) => {
+                        let (p, p_err, uv) = m.point_uv(prim, b.x, b.y);
+                        (p, p_err, f.ng, uv)
+                    }
+                    None => {
+                        let (p, p_err, _ng, ns, uv, _, _) = m.surface(prim, b.x, b.y);
+                        (p, p_err, ns, uv)
+                    }
+                }
             }
             Geometry::Sphere(s) => {
                 let n = crate::math::square_to_uniform_sphere(u);
@@ -449,6 +468,64 @@ mod tests {
         assert!((intersect_sphere(&s, &r, f32::INFINITY).unwrap() - 1.0).abs() < 1e-6);
         let r = Ray::new(Vec3::ZERO, Vec3::X);
         assert!(intersect_sphere(&s, &r, f32::INFINITY).is_none());
+    }
+
+    /// A flat-shaded mesh's precomputed faces give every hit and light sample the bits that
+    /// computing them at the hit gives: rectangles and cubes, placed by rotations, uneven and
+    /// mirroring scales, far from the origin, tiny; normals flipped or not.
+    #[test]
+    fn precomputed_faces_give_the_computed_interactions() {
+        use super::super::Mesh;
+        let placements = [
+            Mat4::IDENTITY,
+            Mat4::from_rotation_translation(
+                glam::Quat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0),
+                Vec3::new(1e4, -3.0, 7.0),
+            ),
+            Mat4::from_scale(Vec3::new(-2.0, 0.5, 3.0)),
+            Mat4::from_scale_rotation_translation(
+                Vec3::new(1e-4, 3e-4, 2e-4),
+                glam::Quat::from_rotation_y(0.7),
+                Vec3::new(0.1, 0.2, 0.3),
+            ),
+        ];
+        let mut seed = 0x1234_5678u32;
+        let mut next = || {
+            seed = crate::math::hash_u32(seed);
+            (seed >> 8) as f32 / 16_777_216.0
+        };
+        let mut checked = 0;
+        for m in &placements {
+            for base in [Mesh::rectangle(), Mesh::cube()] {
+                let mut plain = base.clone();
+                plain.transform_flat(m);
+                let mut faced = plain.clone();
+                assert!(faced.precompute_faces() > 0);
+                for flip_normals in [false, true] {
+                    let shape =
+                        |geometry| Shape { geometry, bsdf: 0, light: None, flip_normals, name: "m".into() };
+                    let (a, b) = (shape(Geometry::Mesh(plain.clone())), shape(Geometry::Mesh(faced.clone())));
+                    for prim in 0..plain.tris.len() {
+                        for _ in 0..50 {
+                            let (b1, b2) = (next(), next());
+                            let (b1, b2) = if b1 + b2 > 1.0 { (1.0 - b1, 1.0 - b2) } else { (b1, b2) };
+                            let ray = Ray::new(Vec3::new(next(), next(), next()), Vec3::Z);
+                            let aux = Vec2::new(b1, b2);
+                            let (x, y) = (
+                                a.interaction(3, prim, &ray, 2.5, aux),
+                                b.interaction(3, prim, &ray, 2.5, aux),
+                            );
+                            assert_eq!(format!("{x:?}"), format!("{y:?}"), "placement {m:?} prim {prim}");
+                            let u = Vec2::new(next(), next());
+                            let (x, y) = (a.sample_prim(prim, u), b.sample_prim(prim, u));
+                            assert_eq!(format!("{x:?}"), format!("{y:?}"), "placement {m:?} prim {prim}");
+                            checked += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(checked, 4 * 2 * (2 + 12) * 50);
     }
 
     #[test]
