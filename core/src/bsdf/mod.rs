@@ -44,6 +44,14 @@ pub use dielectric::Dielectric;
 pub use microfacet::Distribution;
 pub use plastic::{Plastic, RoughCoating};
 
+/// What the integrator asks of a BSDF at every vertex ([`Bsdf::traits`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Traits {
+    pub black: bool,
+    pub smooth: bool,
+    pub chooses_lobe: bool,
+}
+
 /// A sampled incident direction.
 #[derive(Clone, Copy, Debug)]
 pub struct BsdfSample {
@@ -93,6 +101,13 @@ impl Bsdf {
     /// Whether `pred` holds for this BSDF or, for a two-sided one, either side.
     pub fn any(&self, pred: &dyn Fn(&Bsdf) -> bool) -> bool {
         pred(self) || matches!(self, Bsdf::TwoSided { front, back } if front.any(pred) || back.any(pred))
+    }
+
+    /// [`Bsdf::is_black`], [`Bsdf::is_smooth`] and [`Bsdf::chooses_lobe`] at once, for the
+    /// scene to keep beside its BSDFs (the integrator asks at every vertex; a two-sided BSDF
+    /// answers by recursion).
+    pub fn traits(&self) -> Traits {
+        Traits { black: self.is_black(), smooth: self.is_smooth(), chooses_lobe: self.chooses_lobe() }
     }
 
     /// Whether the BSDF has a non-delta component, so that light sampling can help.
@@ -190,11 +205,14 @@ impl Bsdf {
     }
 
     /// `eval`, and `pdf` too where computing it with the value costs little more than the
-    /// value alone (hair, whose terms are shared); otherwise `None`, and `pdf` is called only
-    /// if it is needed.
+    /// value alone (hair, whose terms are shared; diffuse, whose pdf is one product); otherwise
+    /// `None`, and `pdf` is called only if it is needed.
     #[inline]
     pub fn eval_and_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, Option<f32>) {
         match self {
+            Bsdf::Diffuse { reflectance } => {
+                (diffuse::eval(reflectance, uv, wo, wi), Some(diffuse::pdf(wo, wi)))
+            }
             Bsdf::Hair(h) => {
                 let (f, pdf) = h.eval_pdf(wo, wi, hair::Hair::h_from(wo));
                 (f, Some(pdf))

@@ -118,7 +118,8 @@ pub fn li(
         }
 
         let bsdf = &scene.bsdfs[shape.bsdf as usize];
-        if bsdf.is_black() {
+        let traits = scene.bsdf_traits[shape.bsdf as usize];
+        if traits.black {
             break;
         }
         let wo = it.frame.to_local(wo_world);
@@ -147,7 +148,7 @@ pub fn li(
         let mut choices = s.defer_4d();
 
         // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
-        if plan.light_sampling && n_lights > 0 && bsdf.is_smooth() {
+        if plan.light_sampling && n_lights > 0 && traits.smooth {
             let (k, lu) = if !chooses_light {
                 (0, lu)
             } else if reuses_for_light {
@@ -186,7 +187,7 @@ pub fn li(
 
         // BSDF sampling.
         st.bsdf_samples += 1;
-        let bsel = if bsdf.chooses_lobe() { choices.get(s)[1] } else { 0.0 };
+        let bsel = if traits.chooses_lobe { choices.get(s)[1] } else { 0.0 };
         let Some(bs) = bsdf.sample(tc, wo, bsel, Vec2::new(bu, bv)) else {
             break;
         };

@@ -259,6 +259,7 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         seed,
         sampler_type,
         shapes: b.shapes,
+        bsdf_traits: b.bsdfs.iter().map(Bsdf::traits).collect(),
         bsdfs: b.bsdfs,
         lights: b.lights,
         infinite_lights,

@@ -102,6 +102,8 @@ pub struct Scene {
     pub sampler_type: String,
     pub shapes: Vec<Shape>,
     pub bsdfs: Vec<Bsdf>,
+    /// `bsdfs[k].traits()` for each BSDF, kept with them.
+    pub bsdf_traits: Vec<crate::bsdf::Traits>,
     pub lights: Vec<Light>,
     /// Indices into `lights` of lights at infinity (seen by escaping rays).
     pub infinite_lights: Vec<u32>,
