@@ -60,8 +60,18 @@ pub struct BitmapTexture {
 }
 
 impl Texture {
-    #[inline]
+    /// The value at `tc`. A constant is answered inline (most of a scene's reflectances and
+    /// radiances are); lookups go through [`Texture::look_up`].
+    #[inline(always)]
     pub fn eval(&self, tc: TexCoord) -> Rgb {
+        match self {
+            Texture::Const(c) => *c,
+            _ => self.look_up(tc),
+        }
+    }
+
+    #[inline(never)]
+    fn look_up(&self, tc: TexCoord) -> Rgb {
         match self {
             Texture::Const(c) => *c,
             Texture::Checkerboard(c) => {
