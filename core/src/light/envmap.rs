@@ -266,20 +266,44 @@ impl EnvMap {
         (self.warp.pdf_near(us, uv.y, near) / (2.0 * PI64 * PI64 * sin_t)) as f32
     }
 
+    // The three lookups by direction below take the direction's coordinates as three
+    // numbers, which pass in registers: passed as a Vec3 it went through memory, where the
+    // callee's 8-byte reads of it could straddle the caller's separate stores and wait for
+    // them (store forwarding fails), which cost envmap.xml 6% of its time after an unrelated
+    // change to its callers' code.
+
     /// Radiance arriving from world direction `d` (pointing away from the scene).
+    #[inline]
     pub fn eval(&self, d: Vec3) -> Rgb {
-        self.lookup(self.uv(d).0)
+        self.eval_at(d.x, d.y, d.z)
+    }
+
+    #[inline(never)]
+    fn eval_at(&self, x: f32, y: f32, z: f32) -> Rgb {
+        self.lookup(self.uv(Vec3::new(x, y, z)).0)
     }
 
     /// Solid-angle density of [`EnvMap::sample`] at world direction `d`.
+    #[inline]
     pub fn pdf(&self, d: Vec3) -> f32 {
-        let (uv, sin_t) = self.uv(d);
+        self.pdf_towards(d.x, d.y, d.z)
+    }
+
+    #[inline(never)]
+    fn pdf_towards(&self, x: f32, y: f32, z: f32) -> f32 {
+        let (uv, sin_t) = self.uv(Vec3::new(x, y, z));
         self.pdf_at(uv, sin_t as f64)
     }
 
     /// [`EnvMap::eval`] and [`EnvMap::pdf`] at once.
+    #[inline]
     pub fn eval_pdf(&self, d: Vec3) -> (Rgb, f32) {
-        let (uv, sin_t) = self.uv(d);
+        self.eval_pdf_at(d.x, d.y, d.z)
+    }
+
+    #[inline(never)]
+    fn eval_pdf_at(&self, x: f32, y: f32, z: f32) -> (Rgb, f32) {
+        let (uv, sin_t) = self.uv(Vec3::new(x, y, z));
         (self.lookup(uv), self.pdf_at(uv, sin_t as f64))
     }
 
