@@ -17,6 +17,9 @@ pub struct Mesh {
     /// [`Mesh::surface`] computes the same for every point of a triangle, computed once
     /// ([`Mesh::precompute_faces`]); empty otherwise.
     pub faces: Vec<Face>,
+    /// For Mitsuba's `rectangle`: its corner at uv (0, 0) and its edges towards uv (1, 0) and
+    /// (0, 1), so that an area light on it samples the parallelogram as a whole.
+    pub parallelogram: Option<[Vec3; 3]>,
 }
 
 /// Triangles up to which a flat-shaded mesh keeps its [`Face`]s (108 bytes a triangle).
@@ -227,7 +230,18 @@ impl Mesh {
             uvs: vec![Vec2::new(0.0, 0.0), Vec2::new(1.0, 0.0), Vec2::new(1.0, 1.0), Vec2::new(0.0, 1.0)],
             tris: vec![[0, 1, 2], [0, 2, 3]],
             faces: Vec::new(),
+            parallelogram: None,
         }
+    }
+
+    /// Mitsuba's `rectangle` placed by `to_world`, with its faces and its parallelogram.
+    pub fn placed_rectangle(to_world: &Mat4) -> Mesh {
+        let mut m = Mesh::rectangle();
+        m.transform_flat(to_world);
+        m.precompute_faces();
+        let p = &m.positions;
+        m.parallelogram = Some([p[0], p[1] - p[0], p[3] - p[0]]);
+        m
     }
 
     /// Mitsuba's `cube`: [-1, 1]^3, 24 vertices so that each face has its own normal and uvs.
@@ -532,7 +546,10 @@ use crate::scene::build::{Builder, R};
 
 /// `rectangle` and `cube`, placed by `to_world`.
 pub(crate) fn builtin_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::Geometry> {
-    let mut m = if b.doc.obj(i).plugin == "cube" { Mesh::cube() } else { Mesh::rectangle() };
+    if b.doc.obj(i).plugin != "cube" {
+        return Ok(super::Geometry::Mesh(Mesh::placed_rectangle(to_world)));
+    }
+    let mut m = Mesh::cube();
     m.transform_flat(to_world);
     m.precompute_faces();
     Ok(super::Geometry::Mesh(m))

@@ -362,6 +362,21 @@ impl Shape {
         }
     }
 
+    /// A uniformly distributed point on the whole shape, where the shape is sampled whole (a
+    /// `rectangle`: the 2-D sample maps straight onto it, keeping its stratification); `None`
+    /// where it is sampled primitive by primitive ([`Shape::sample_prim`]).
+    #[inline]
+    pub fn sample_whole(&self, u: Vec2) -> Option<SurfacePoint> {
+        let Geometry::Mesh(m) = &self.geometry else { return None };
+        let [o, e1, e2] = m.parallelogram?;
+        let n = m.faces.first()?.ng;
+        let (a, b) = (e1 * u.x, e2 * u.y);
+        let p = o + a + b;
+        // Each product and sum rounds once, and each edge was rounded once from the corners.
+        let p_err = (o.abs() + a.abs() * 2.0 + b.abs() * 2.0) * gamma(4);
+        Some(SurfacePoint { p, p_err, n: if self.flip_normals { -n } else { n }, uv: u })
+    }
+
     /// A uniformly distributed point on primitive `prim` with its (flipped) normal.
     pub fn sample_prim(&self, prim: usize, u: Vec2) -> SurfacePoint {
         let (p, p_err, n, uv) = match &self.geometry {
@@ -526,6 +541,59 @@ mod tests {
             }
         }
         assert_eq!(checked, 4 * 2 * (2 + 12) * 50);
+    }
+
+    /// A rectangle sampled whole: its points lie on it within their error bound, with the uv
+    /// and the normal that a ray hitting there finds, and equal areas of uv get equal shares of
+    /// the samples (uv is affine in the point, so that is uniform over the area).
+    #[test]
+    fn a_rectangle_sampled_whole_is_uniform_and_agrees_with_its_hits() {
+        use super::super::{Accel, Mesh};
+        let placements = [
+            Mat4::from_scale_rotation_translation(
+                Vec3::new(2.0, 0.5, 1.0),
+                glam::Quat::from_euler(glam::EulerRot::XYZ, 0.4, 1.0, -0.3),
+                Vec3::new(300.0, -2.0, 5.0),
+            ),
+            Mat4::from_scale(Vec3::new(-1.5, 1.0, 1.0)),
+        ];
+        for m in placements {
+            for flip_normals in [false, true] {
+                let mesh = Mesh::placed_rectangle(&m);
+                let shape = Shape {
+                    geometry: Geometry::Mesh(mesh),
+                    bsdf: 0,
+                    light: None,
+                    flip_normals,
+                    name: "r".into(),
+                };
+                let shapes = [shape];
+                let accel = Accel::build(&shapes);
+                let mut counts = [0u32; 16];
+                let n = 16_000;
+                for i in 0..n {
+                    let u = Vec2::new(((i % 160) as f32 + 0.5) / 160.0, ((i / 160) as f32 + 0.5) / 100.0);
+                    let sp = shapes[0].sample_whole(u).expect("a rectangle is sampled whole");
+                    let exact = m.as_dmat4().transform_point3(glam::DVec3::new(
+                        2.0 * u.x as f64 - 1.0,
+                        2.0 * u.y as f64 - 1.0,
+                        0.0,
+                    ));
+                    let err = (sp.p.as_dvec3() - exact).abs();
+                    // The mesh's own corners are rounded too: a few ulps of the coordinates.
+                    assert!(err.cmple(sp.p_err.as_dvec3() * 4.0 + 1e-4).all(), "{err:?} > {:?}", sp.p_err);
+                    let o = sp.p + sp.n * 0.5;
+                    let hit = accel
+                        .intersect(&shapes, &Ray::new(o, -sp.n))
+                        .expect("the ray comes back to the point");
+                    assert!((hit.p - sp.p).length() < 1e-3, "{:?} {:?}", hit.p, sp.p);
+                    assert!((hit.uv - sp.uv).abs().max_element() < 1e-4, "{:?} {:?}", hit.uv, sp.uv);
+                    assert!((hit.frame.n - sp.n).length() < 1e-5, "{:?} {:?}", hit.frame.n, sp.n);
+                    counts[((sp.uv.x * 4.0) as usize).min(3) + 4 * ((sp.uv.y * 4.0) as usize).min(3)] += 1;
+                }
+                assert!(counts.iter().all(|&c| c as i32 == n / 16), "{counts:?}");
+            }
+        }
     }
 
     #[test]

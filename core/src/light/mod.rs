@@ -217,8 +217,13 @@ impl Light {
                         }
                     }
                 }
-                let (prim, ux) = pick_reuse(cdf, u.x, spare);
-                let sp = sh.sample_prim(prim, Vec2::new(ux, u.y));
+                let sp = match sh.sample_whole(u) {
+                    Some(sp) => sp,
+                    None => {
+                        let (prim, ux) = pick_reuse(cdf, u.x, spare);
+                        sh.sample_prim(prim, Vec2::new(ux, u.y))
+                    }
+                };
                 let v = sp.p - it.p;
                 let dist2 = v.length_squared();
                 if dist2 == 0.0 {
