@@ -97,13 +97,15 @@ impl Interaction {
         Ray::new(offset_ray_origin(self.p, self.p_err, self.ng, d), d)
     }
 
-    /// A shadow ray from this surface towards `target` (a point already offset off its own
-    /// surface), stopping just short of it. Returns the ray and the distance to the target.
-    pub fn spawn_ray_to(&self, target: Vec3) -> Ray {
-        let o = offset_ray_origin(self.p, self.p_err, self.ng, target - self.p);
-        let v = target - o;
-        let dist = v.length();
-        Ray { o, d: v / dist, tmin: 0.0, tmax: dist * (1.0 - 1e-4) }
+    /// A shadow ray from this surface along `wi` (unit, the direction from this point towards
+    /// `target`, a point already offset off its own surface), stopping just short of where it
+    /// passes `target`. The direction is the light sample's own, not normalised again from the
+    /// offset origin: the ray misses `target` by at most this surface's offset, far less than
+    /// the 1e-4 of the distance it stops short by, and a square root and a division less lie on
+    /// the way from the light sample to the shadow ray's traversal.
+    pub fn spawn_ray_to(&self, wi: Vec3, target: Vec3) -> Ray {
+        let o = offset_ray_origin(self.p, self.p_err, self.ng, wi);
+        Ray { o, d: wi, tmin: 0.0, tmax: wi.dot(target - o) * (1.0 - 1e-4) }
     }
 }
 
