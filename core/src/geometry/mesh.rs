@@ -158,8 +158,11 @@ impl Mesh {
         std::mem::size_of_val(self.faces.as_slice())
     }
 
-    /// Applies `to_world` to positions and (by the inverse transpose) to normals.
+    /// Applies `to_world` to positions and (by the inverse transpose) to normals. Drops the
+    /// faces and the parallelogram, which no longer hold (compute them again once placed).
     pub fn transform(&mut self, m: &Mat4) {
+        self.faces = Vec::new();
+        self.parallelogram = None;
         for p in &mut self.positions {
             *p = m.transform_point3(*p);
         }
@@ -169,8 +172,11 @@ impl Mesh {
         }
     }
 
-    /// Checks indices and coordinates, and drops degenerate (zero-area) triangles.
+    /// Checks indices and coordinates, and drops degenerate (zero-area) triangles (and the
+    /// faces and parallelogram, which then no longer hold).
     pub fn validate(mut self) -> Result<Mesh, MeshError> {
+        self.faces = Vec::new();
+        self.parallelogram = None;
         let count = self.positions.len();
         if let Some(k) = self.positions.iter().position(|p| !p.is_finite()) {
             return Err(MeshError::NonFinite(k));
@@ -546,12 +552,18 @@ use crate::scene::build::{Builder, R};
 
 /// `rectangle` and `cube`, placed by `to_world`.
 pub(crate) fn builtin_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<super::Geometry> {
-    if b.doc.obj(i).plugin != "cube" {
-        return Ok(super::Geometry::Mesh(Mesh::placed_rectangle(to_world)));
-    }
-    let mut m = Mesh::cube();
-    m.transform_flat(to_world);
-    m.precompute_faces();
+    let o = b.doc.obj(i);
+    let m = if o.plugin == "cube" {
+        let mut m = Mesh::cube();
+        m.transform_flat(to_world);
+        m.precompute_faces();
+        m
+    } else {
+        Mesh::placed_rectangle(to_world)
+    };
+    // The mesh itself is charged with the shape; its faces are twice its size.
+    let faces = std::mem::size_of_val(m.faces.as_slice()) as u64;
+    b.budget.charge(o.plugin.as_str(), 0, faces).map_err(|e| b.err(o.pos, e))?;
     Ok(super::Geometry::Mesh(m))
 }
 

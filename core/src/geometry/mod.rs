@@ -14,7 +14,9 @@ pub use bvh::Accel;
 pub use mesh::Mesh;
 pub use shapes::{Disk, Geometry, Instance, Shape, Sphere};
 
-/// A ray `o + t d` for `t` in `[tmin, tmax)`. `d` is unit length unless stated otherwise.
+/// A ray `o + t d` for `t` in `[tmin, tmax)`. `d` is unit length unless stated otherwise
+/// (a shadow ray towards a point: within rounding of the offsets, see
+/// [`Interaction::spawn_ray_to`]).
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
     pub o: Vec3,
@@ -97,15 +99,23 @@ impl Interaction {
         Ray::new(offset_ray_origin(self.p, self.p_err, self.ng, d), d)
     }
 
-    /// A shadow ray from this surface along `wi` (unit, the direction from this point towards
-    /// `target`, a point already offset off its own surface), stopping just short of where it
-    /// passes `target`. The direction is the light sample's own, not normalised again from the
-    /// offset origin: the ray misses `target` by at most this surface's offset, far less than
-    /// the 1e-4 of the distance it stops short by, and a square root and a division less lie on
-    /// the way from the light sample to the shadow ray's traversal.
-    pub fn spawn_ray_to(&self, wi: Vec3, target: Vec3) -> Ray {
+    /// A shadow ray from this surface towards `target` (a point already offset off its own
+    /// surface, `dist` from this point: the length its light sample's direction was normalised
+    /// by), stopping just short of it. The direction is `target - o` from the offset origin
+    /// `o`, scaled by `1 / dist` rather than normalised again: a ray that ends where the old
+    /// one did (on the segment from `o` to `target`, 1e-4 short), with a direction within
+    /// (offsets) / `dist` of unit length, and no square root between the light sample and the
+    /// traversal. (Keeping the sample's own direction from the unoffset point instead let the
+    /// ray, shifted by this surface's offset, end past the light's surface when the light is
+    /// close to it relative to the scene's coordinates, and hit the light itself.)
+    pub fn spawn_ray_to(&self, wi: Vec3, target: Vec3, dist: f32) -> Ray {
         let o = offset_ray_origin(self.p, self.p_err, self.ng, wi);
-        Ray { o, d: wi, tmin: 0.0, tmax: wi.dot(target - o) * (1.0 - 1e-4) }
+        if !(dist > 0.0 && dist < f32::INFINITY) {
+            let v = target - o;
+            let len = v.length();
+            return Ray { o, d: v / len, tmin: 0.0, tmax: len * (1.0 - 1e-4) };
+        }
+        Ray { o, d: (target - o) * (1.0 / dist), tmin: 0.0, tmax: dist * (1.0 - 1e-4) }
     }
 }
 

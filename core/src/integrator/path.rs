@@ -167,7 +167,7 @@ pub fn li(
                     let (f, bsdf_pdf) = bsdf.eval_and_pdf(tc, wo, wi);
                     if f != Rgb::ZERO {
                         let shadow = match ls.target {
-                            Some(t) => it.spawn_ray_to(ls.wi, t),
+                            Some((t, dist)) => it.spawn_ray_to(ls.wi, t, dist),
                             None => it.spawn_ray(ls.wi),
                         };
                         st.shadow_rays += 1;

@@ -104,8 +104,9 @@ pub struct LightSample {
     /// Solid-angle pdf of `wi` (1 for delta lights).
     pub pdf: f32,
     pub delta: bool,
-    /// The point on the light, offset off its surface; `None` for lights at infinity.
-    pub target: Option<Vec3>,
+    /// The point on the light, offset off its surface, and its distance from the reference
+    /// point (the length that `wi` was normalised by); `None` for lights at infinity.
+    pub target: Option<(Vec3, f32)>,
 }
 
 /// A light sample's incident radiance, or the point of an environment map where it is to be
@@ -242,7 +243,7 @@ impl Light {
                     li: Incident::Known(li),
                     pdf,
                     delta: false,
-                    target: Some(crate::math::offset_ray_origin(sp.p, sp.p_err, sp.n, -wi)),
+                    target: Some((crate::math::offset_ray_origin(sp.p, sp.p_err, sp.n, -wi), dist)),
                 })
             }
             Light::Point { position, intensity } => {
@@ -251,12 +252,13 @@ impl Light {
                 if dist2 == 0.0 {
                     return None;
                 }
+                let dist = dist2.sqrt();
                 Some(LightSample {
-                    wi: v / dist2.sqrt(),
+                    wi: v / dist,
                     li: Incident::Known(*intensity / dist2),
                     pdf: 1.0,
                     delta: true,
-                    target: Some(*position),
+                    target: Some((*position, dist)),
                 })
             }
             Light::Spot { position, axis, intensity, cos_cutoff, cos_beam, cutoff, beam } => {
@@ -265,7 +267,8 @@ impl Light {
                 if dist2 == 0.0 {
                     return None;
                 }
-                let wi = v / dist2.sqrt();
+                let dist = dist2.sqrt();
+                let wi = v / dist;
                 let cos = (-wi).dot(*axis);
                 let falloff = if cos >= *cos_beam {
                     1.0
@@ -279,7 +282,7 @@ impl Light {
                     li: Incident::Known(*intensity * (falloff / dist2)),
                     pdf: 1.0,
                     delta: true,
-                    target: Some(*position),
+                    target: Some((*position, dist)),
                 })
             }
             Light::Directional { direction, irradiance } => Some(LightSample {
@@ -431,7 +434,7 @@ fn sample_sphere_cone(s: &Sphere, p: Vec3, u: Vec2, radiance: &Texture) -> Optio
         li: Incident::Known(radiance.eval(s.uv(n).into())),
         pdf: 1.0 / (2.0 * PI * one_minus_cos_max),
         delta: false,
-        target: Some(crate::math::offset_ray_origin(p_on, p_err, n, -wi)),
+        target: Some((crate::math::offset_ray_origin(p_on, p_err, n, -wi), ds)),
     })
 }
 
@@ -509,6 +512,64 @@ pub(crate) fn area_radiance_from(b: &mut Builder, i: usize) -> R<Texture> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Shadow rays towards an area light and a point light never find the light's own surface
+    /// (nor the surface a point light sits on): floors far from the origin with the light
+    /// close above, where a surface's offset is large beside the light's distance. (A shadow
+    /// ray that kept the light sample's direction from the unoffset point, shifted by the
+    /// floor's offset, ended past the light's surface in most of these samples.)
+    #[test]
+    fn shadow_rays_stop_short_of_the_light_they_aim_at() {
+        use crate::geometry::{Accel, Geometry, Mesh, Ray};
+        use glam::{Mat4, Quat};
+        let mut checked = 0;
+        for (y, height, half) in
+            [(0.75f32, 1e-3f32, 0.5f32), (5.0, 0.02, 1.0), (1000.0, 1.0, 3.0), (1e4, 2.0, 5.0)]
+        {
+            let place = |at: f32, size: f32, facing_down: bool| {
+                let turn = Quat::from_rotation_x(if facing_down { 90f32 } else { -90f32 }.to_radians());
+                Mat4::from_scale_rotation_translation(Vec3::splat(size), turn, Vec3::new(0.3, at, -0.2))
+            };
+            let shape = |m: Mat4, name: &str| Shape {
+                geometry: Geometry::Mesh(Mesh::placed_rectangle(&m)),
+                bsdf: 0,
+                light: None,
+                flip_normals: false,
+                name: name.into(),
+            };
+            let shapes = vec![
+                shape(place(y, half, false), "floor"),
+                shape(place(y + height, 0.2 * half, true), "light"),
+            ];
+            let accel = Accel::build(&shapes);
+            let area = Light::area(1, &shapes[1], Texture::Const(Rgb::ONE));
+            // A point light on the light's plane, as one screwed into a ceiling.
+            let point = Light::Point { position: Vec3::new(0.3, y + height, -0.2), intensity: Rgb::ONE };
+            for i in 0..400 {
+                let f = |k: u32| ((i * 7 + k * 131) % 400) as f32 / 400.0;
+                let at = Vec3::new(
+                    0.3 + half * 0.9 * (2.0 * f(1) - 1.0),
+                    y + 0.5 * height,
+                    -0.2 + half * 0.9 * (2.0 * f(2) - 1.0),
+                );
+                let it = accel.intersect(&shapes, &Ray::new(at, -Vec3::Y)).expect("the floor is below");
+                assert_eq!(it.shape, 0);
+                for light in [&area, &point] {
+                    let Some(ls) = light.sample(&shapes, &it, Vec2::new(f(3), f(4)), || 0.5) else {
+                        continue;
+                    };
+                    let (target, dist) = ls.target.expect("a light at a point");
+                    let ray = it.spawn_ray_to(ls.wi, target, dist);
+                    assert!(
+                        !accel.occluded(&shapes, &ray),
+                        "y {y} height {height}: {ray:?} hits the light's own plane"
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 2000, "{checked}");
+    }
 
     /// An environment map's samples: by importance, the radiance is looked up later, never
     /// taken as black, and is the white half's; by the uniform ablation, a black direction is
