@@ -561,7 +561,8 @@ pub(crate) fn builtin_from(b: &mut Builder, i: usize, to_world: &Mat4) -> R<supe
     } else {
         Mesh::placed_rectangle(to_world)
     };
-    // The mesh itself is charged with the shape; its faces are twice its size.
+    // A built-in mesh's own few vertices are left to the scene text's and the BVH's charges;
+    // its faces (108 bytes a triangle) are twice its size, so they are charged.
     let faces = std::mem::size_of_val(m.faces.as_slice()) as u64;
     b.budget.charge(o.plugin.as_str(), 0, faces).map_err(|e| b.err(o.pos, e))?;
     Ok(super::Geometry::Mesh(m))
