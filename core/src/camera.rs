@@ -245,7 +245,7 @@ mod tests {
 
     use glam::{DVec3, Vec2};
 
-    use crate::geometry::bvh::Candidates;
+    use crate::geometry::bvh::{Candidates, PACKET};
     use crate::scene::Scene;
     use crate::testing::Pcg;
 
@@ -283,6 +283,7 @@ mod tests {
                 let bundle = bundles.pixel(px, py);
                 scene.accel.gather(&bundle, &mut cands);
                 complete += cands.len().is_some() as usize;
+                let mut traced = Vec::with_capacity(rays);
                 for k in 0..rays {
                     let (f, lens_u) = samples(&mut rng, k);
                     let pos = Vec2::new(px as f32 + f.x, py as f32 + f.y);
@@ -309,6 +310,7 @@ mod tests {
                             );
                         }
                     }
+                    traced.push(ray);
                     let whole = scene.intersect(&ray);
                     let among = scene.intersect_among(&ray, &cands);
                     match (&whole, &among) {
@@ -318,6 +320,24 @@ mod tests {
                             hits += 1;
                         }
                         _ => panic!("pixel ({px}, {py}) sample {k}: {ray:?}: {whole:?} against {among:?}"),
+                    }
+                }
+                // In packets, as render_region traces them: each ray's own hit, bit for bit.
+                for packet in traced.chunks(PACKET) {
+                    let mut out = [None; PACKET];
+                    scene.intersect_among_packet(packet, &cands, &mut out[..packet.len()]);
+                    for (ray, hit) in packet.iter().zip(out) {
+                        let key = |it: Option<crate::geometry::Interaction>| {
+                            it.map(|it| {
+                                (it.t.to_bits(), it.shape, it.prim, it.p.to_array().map(f32::to_bits))
+                            })
+                        };
+                        let packed = hit.map(|h| scene.accel.hit_interaction(&scene.shapes, ray, &h));
+                        assert_eq!(
+                            key(packed),
+                            key(scene.intersect_among(ray, &cands)),
+                            "pixel ({px}, {py}): {ray:?}"
+                        );
                     }
                 }
             }

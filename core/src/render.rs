@@ -3,13 +3,15 @@
 
 use std::sync::Mutex;
 
-use glam::Vec2;
+use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
 use crate::film::{Accum, Filter, PixelSum};
-use crate::geometry::bvh::Candidates;
-use crate::geometry::RayDifferentials;
-use crate::integrator::{path, Stats};
+use crate::geometry::bvh::{Candidates, PACKET};
+use crate::geometry::{Ray, RayDifferentials};
+use crate::integrator::path::{self, First};
+use crate::integrator::Stats;
+use crate::math::Rgb;
 use crate::sampler::PixelSeeds;
 use crate::scene::Scene;
 
@@ -92,34 +94,14 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
             let mut seeds = PixelSeeds::new(seed, fx_px, fy_px);
             // With a box filter of radius 0.5 the pixel's own sums, added once at its end.
             let mut own = PixelSum::default();
-            for i in r.s0..r.s1 {
-                let mut s = seeds.stream(i);
-                let [fx, fy, lx, ly] = s.next_4d();
-                let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
-                let lens_u = Vec2::new(lx, ly);
-                let camera_ray = |pos: Vec2| match &cam.lens {
-                    None => cam.ray_pinhole(pos),
-                    Some(lens) => cam.ray_thin_lens(lens, pos, lens_u),
-                };
-                if cam.lens.is_some() {
-                    st.lens_samples += 1;
-                }
-                let ray = camera_ray(pos);
-                // Differentials to a neighbour FOOTPRINT_PIXELS away: the pixel filter already
-                // averages many samples, so a full pixel would blur twice.
-                let diff = scene.techniques.footprints.then(|| RayDifferentials {
-                    rx: camera_ray(pos + Vec2::new(FOOTPRINT_PIXELS, 0.0)),
-                    ry: camera_ray(pos + Vec2::new(0.0, FOOTPRINT_PIXELS)),
-                });
-                let l = path::li(scene, ray, diff.as_ref(), Some(&cands), &mut s, &mut st);
-                st.samples += 1;
+            let mut add = |l: Rgb, fx: f32, fy: f32| {
                 if let Some(why) = crate::film::drop_reason(l) {
                     acc.count_dropped(x, y, why);
-                    continue;
+                    return;
                 }
                 if own_pixel {
                     own.add_own_sample(l);
-                    continue;
+                    return;
                 }
                 acc.count_sample(x, y, l);
                 // Splat to every pixel whose centre lies within the filter radius.
@@ -140,6 +122,48 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
                         }
                     }
                 }
+            };
+            // Where the pixel's leaves were all gathered, its camera rays go in packets of
+            // PACKET: their first hits are found together, then each path goes on alone.
+            let packets = cands.len().is_some();
+            let mut i = r.s0;
+            while i < r.s1 {
+                let want = if packets { (r.s1 - i).min(PACKET as u64) as usize } else { 1 };
+                let (mut streams, n) = seeds.streams::<PACKET>(i, want);
+                let mut film_uv = [(0.0f32, 0.0f32); PACKET];
+                let mut rays = [Ray::new(Vec3::ZERO, Vec3::Z); PACKET];
+                let mut diffs = [None; PACKET];
+                for j in 0..n {
+                    let [fx, fy, lx, ly] = streams[j].next_4d();
+                    let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
+                    let lens_u = Vec2::new(lx, ly);
+                    let camera_ray = |pos: Vec2| match &cam.lens {
+                        None => cam.ray_pinhole(pos),
+                        Some(lens) => cam.ray_thin_lens(lens, pos, lens_u),
+                    };
+                    if cam.lens.is_some() {
+                        st.lens_samples += 1;
+                    }
+                    film_uv[j] = (fx, fy);
+                    rays[j] = camera_ray(pos);
+                    // Differentials to a neighbour FOOTPRINT_PIXELS away: the pixel filter
+                    // already averages many samples, so a full pixel would blur twice.
+                    diffs[j] = scene.techniques.footprints.then(|| RayDifferentials {
+                        rx: camera_ray(pos + Vec2::new(FOOTPRINT_PIXELS, 0.0)),
+                        ry: camera_ray(pos + Vec2::new(0.0, FOOTPRINT_PIXELS)),
+                    });
+                }
+                let mut hits = [None; PACKET];
+                if packets {
+                    scene.intersect_among_packet(&rays[..n], &cands, &mut hits[..n]);
+                }
+                for j in 0..n {
+                    let first = if packets { First::Found(hits[j]) } else { First::Trace };
+                    let l = path::li(scene, rays[j], diffs[j].as_ref(), first, &mut streams[j], &mut st);
+                    st.samples += 1;
+                    add(l, film_uv[j].0, film_uv[j].1);
+                }
+                i += n as u64;
             }
             if own_pixel {
                 acc.add_pixel(x, y, &own);

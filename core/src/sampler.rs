@@ -84,6 +84,20 @@ impl PixelSeeds {
     /// The stream of sample `index`. Sample indices past the sequence length continue in a
     /// fresh, independently scrambled sequence (the seeds are hashed again when the block
     /// changes).
+    /// Up to `N` streams at once, of samples `index..index + n` (one to `want`, within one
+    /// block of [`SEQUENCE_LEN`]), and `n`; streams past `n` repeat the last.
+    #[inline]
+    pub fn streams<const N: usize>(&mut self, index: u64, want: usize) -> ([SampleStream<'_>; N], usize) {
+        let block = (index / SEQUENCE_LEN as u64) as u32;
+        if block != self.block {
+            self.set_block(block);
+        }
+        let at = (index % SEQUENCE_LEN as u64) as u32;
+        let n = want.min(N).min((SEQUENCE_LEN - at) as usize).max(1);
+        let pixel = &*self;
+        (std::array::from_fn(|j| SampleStream { pixel, index: at + j.min(n - 1) as u32, set: 0 }), n)
+    }
+
     #[inline]
     pub fn stream(&mut self, index: u64) -> SampleStream<'_> {
         let block = (index / SEQUENCE_LEN as u64) as u32;

@@ -469,6 +469,110 @@ mod x86 {
         Some(mask)
     }
 
+    /// [`super::super::intersect_triangle`] of one triangle (its vertices on the rays' permuted
+    /// axes) against eight rays, one a lane: the same IEEE operations in the same order as
+    /// [`quad_sse`] (hence as the scalar test), for the lanes in `alive`. Returns the lanes
+    /// that hit closer than their `tmax`, the lanes whose ray passes exactly through an edge
+    /// (the scalar test decides those), and the hits' distances and barycentrics.
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    pub unsafe fn tri_lanes(
+        r: &super::TriRayLanes,
+        p: [[f32; 3]; 3],
+        tmax: __m256,
+        alive: u32,
+    ) -> (u32, u32, [f32; 8], [f32; 8], [f32; 8]) {
+        let none = [0.0f32; 8];
+        let [ox, oy, oz] = r.o;
+        let [sx, sy, sz] = r.s;
+        let vertex = |v: usize| {
+            let az = _mm256_sub_ps(_mm256_set1_ps(p[v][2]), oz);
+            let x = _mm256_add_ps(_mm256_sub_ps(_mm256_set1_ps(p[v][0]), ox), _mm256_mul_ps(sx, az));
+            let y = _mm256_add_ps(_mm256_sub_ps(_mm256_set1_ps(p[v][1]), oy), _mm256_mul_ps(sy, az));
+            (x, y, az)
+        };
+        let ((ax, ay, a_z), (bx, by, b_z), (cx, cy, c_z)) = (vertex(0), vertex(1), vertex(2));
+        let u = _mm256_sub_ps(_mm256_mul_ps(cx, by), _mm256_mul_ps(cy, bx));
+        let v = _mm256_sub_ps(_mm256_mul_ps(ax, cy), _mm256_mul_ps(ay, cx));
+        let w = _mm256_sub_ps(_mm256_mul_ps(bx, ay), _mm256_mul_ps(by, ax));
+        let zero = _mm256_setzero_ps();
+        let eq = |a: __m256| _mm256_cmp_ps::<_CMP_EQ_OQ>(a, zero);
+        let lt = |a: __m256, b: __m256| _mm256_cmp_ps::<_CMP_LT_OQ>(a, b);
+        let gt = |a: __m256, b: __m256| _mm256_cmp_ps::<_CMP_GT_OQ>(a, b);
+        let or = |a: __m256, b: __m256| _mm256_or_ps(a, b);
+        let bits = |a: __m256| _mm256_movemask_ps(a) as u32;
+        let edge = bits(or(or(eq(u), eq(v)), eq(w))) & alive;
+        let alive = alive & !edge;
+        let any_neg = or(or(lt(u, zero), lt(v, zero)), lt(w, zero));
+        let any_pos = or(or(gt(u, zero), gt(v, zero)), gt(w, zero));
+        let det = _mm256_add_ps(_mm256_add_ps(u, v), w);
+        let mut miss = or(_mm256_and_ps(any_neg, any_pos), eq(det));
+        // Most triangles are passed by: out as soon as every lane has missed.
+        if !bits(miss) & alive == 0 {
+            return (0, edge, none, none, none);
+        }
+        let (az, bz, cz) = (_mm256_mul_ps(sz, a_z), _mm256_mul_ps(sz, b_z), _mm256_mul_ps(sz, c_z));
+        let t_scaled =
+            _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(u, az), _mm256_mul_ps(v, bz)), _mm256_mul_ps(w, cz));
+        let (lo, hi) = (_mm256_mul_ps(r.tmin, det), _mm256_mul_ps(tmax, det));
+        let neg_out = or(_mm256_cmp_ps::<_CMP_GE_OQ>(t_scaled, lo), lt(t_scaled, hi));
+        let pos_out = or(_mm256_cmp_ps::<_CMP_LE_OQ>(t_scaled, lo), gt(t_scaled, hi));
+        miss = or(miss, _mm256_and_ps(lt(det, zero), neg_out));
+        miss = or(miss, _mm256_and_ps(gt(det, zero), pos_out));
+        if !bits(miss) & alive == 0 {
+            return (0, edge, none, none, none);
+        }
+        let inv_det = _mm256_div_ps(_mm256_set1_ps(1.0), det);
+        let t = _mm256_mul_ps(t_scaled, inv_det);
+        // The error bound of t, as `quad_sse` computes it.
+        let abs = |x: __m256| _mm256_andnot_ps(_mm256_set1_ps(-0.0), x);
+        let max3 = |a: __m256, b: __m256, c: __m256| _mm256_max_ps(_mm256_max_ps(abs(a), abs(b)), abs(c));
+        let g = |n: i32| _mm256_set1_ps(gamma(n));
+        let max_zt = max3(az, bz, cz);
+        let delta_z = _mm256_mul_ps(g(3), max_zt);
+        let max_xt = max3(ax, bx, cx);
+        let max_yt = max3(ay, by, cy);
+        let delta_x = _mm256_mul_ps(g(5), _mm256_add_ps(max_xt, max_zt));
+        let delta_y = _mm256_mul_ps(g(5), _mm256_add_ps(max_yt, max_zt));
+        let delta_e = _mm256_mul_ps(
+            _mm256_set1_ps(2.0),
+            _mm256_add_ps(
+                _mm256_add_ps(
+                    _mm256_mul_ps(_mm256_mul_ps(g(2), max_xt), max_yt),
+                    _mm256_mul_ps(delta_y, max_xt),
+                ),
+                _mm256_mul_ps(delta_x, max_yt),
+            ),
+        );
+        let max_e = max3(u, v, w);
+        let delta_t = _mm256_mul_ps(
+            _mm256_mul_ps(
+                _mm256_set1_ps(3.0),
+                _mm256_add_ps(
+                    _mm256_add_ps(
+                        _mm256_mul_ps(_mm256_mul_ps(g(3), max_e), max_zt),
+                        _mm256_mul_ps(delta_e, max_zt),
+                    ),
+                    _mm256_mul_ps(delta_z, max_e),
+                ),
+            ),
+            abs(inv_det),
+        );
+        miss = or(miss, _mm256_cmp_ps::<_CMP_LE_OQ>(t, delta_t));
+        // And closer than the ray's closest hit so far, as the leaf loop asks of a hit.
+        let closer = lt(t, tmax);
+        let accept = !bits(miss) & bits(closer) & alive;
+        if accept == 0 {
+            return (0, edge, none, none, none);
+        }
+        let store = |x: __m256| {
+            let mut a = [0.0f32; 8];
+            _mm256_storeu_ps(a.as_mut_ptr(), x);
+            a
+        };
+        (accept, edge, store(t), store(_mm256_mul_ps(v, inv_det)), store(_mm256_mul_ps(w, inv_det)))
+    }
+
     /// [`super::test_scalar`] on two halves of four lanes.
     #[inline(always)]
     pub unsafe fn test_sse(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
@@ -1404,10 +1508,17 @@ impl Accel {
     /// lies past the closest hit. The same hit as [`Accel::intersect`] (up to which of two
     /// primitives at exactly the same distance is reported).
     pub fn intersect_among(&self, shapes: &[Shape], ray: &Ray, cands: &Candidates) -> Option<Interaction> {
-        if !cands.complete {
-            return self.intersect(shapes, ray);
-        }
+        let hit = self.among_hit(shapes, ray, cands)?;
+        Some(self.hit_interaction(shapes, ray, &hit))
+    }
+
+    /// [`Accel::intersect_among`]'s hit, before its interaction is made.
+    fn among_hit(&self, shapes: &[Shape], ray: &Ray, cands: &Candidates) -> Option<Hit> {
         let mut q = Query::new(shapes, ray);
+        if !cands.complete {
+            let (t, k, aux) = self.query_with(&mut q, false)?;
+            return Some(Hit { t, k, aux, inner: q.inner.get() });
+        }
         // SAFETY: `self.kernel` is one that this CPU runs (`detect`, `set_kernel`).
         let t = unsafe {
             match self.kernel {
@@ -1419,7 +1530,12 @@ impl Accel {
             }
         };
         let (k, aux) = q.best?;
-        Some(self.interaction(shapes, k, ray, t, aux, q.inner.get()))
+        Some(Hit { t, k, aux, inner: q.inner.get() })
+    }
+
+    /// The interaction of `hit`, found along `ray`.
+    pub fn hit_interaction(&self, shapes: &[Shape], ray: &Ray, hit: &Hit) -> Interaction {
+        self.interaction(shapes, hit.k, ray, hit.t, hit.aux, hit.inner)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -1447,6 +1563,167 @@ impl Accel {
         }
         tmax
     }
+}
+
+/// Camera rays of one pixel traced together by [`Accel::intersect_among_packet`].
+pub const PACKET: usize = 8;
+
+/// A closest hit before its interaction is made ([`Accel::hit_interaction`]): 32 bytes where
+/// the interaction takes 100.
+#[derive(Clone, Copy, Debug)]
+pub struct Hit {
+    t: f32,
+    /// The leaf-order primitive and its aux values.
+    k: u32,
+    aux: Vec2,
+    /// [`Query::inner`], for a hit inside an instance.
+    inner: (u32, Vec2, f32),
+}
+
+impl Accel {
+    /// [`Accel::intersect_among`] for each of `rays` (at most [`PACKET`], all of the bundle
+    /// `cands` was gathered for), into `out` ([`Accel::hit_interaction`] makes a hit's
+    /// interaction): the same hits, bit for bit. With the AVX2 kernel,
+    /// where the rays share the triangle test's axes ([`RayPre`]), a leaf's triangles are
+    /// tested against all the rays at once, one ray a lane, each ray through the leaves its own
+    /// query would test (it stops at the first leaf beyond its closest hit) and each lane
+    /// computing what [`intersect_triangle`] computes for its ray; other leaves are tested ray
+    /// by ray as [`Accel::intersect_among`] tests them.
+    ///
+    /// # Panics
+    /// If `rays` is longer than [`PACKET`] or `out` is not as long as `rays`.
+    pub fn intersect_among_packet(
+        &self,
+        shapes: &[Shape],
+        rays: &[Ray],
+        cands: &Candidates,
+        out: &mut [Option<Hit>],
+    ) {
+        assert!(rays.len() <= PACKET && out.len() == rays.len(), "{} rays into {}", rays.len(), out.len());
+        #[cfg(target_arch = "x86_64")]
+        if cands.complete && self.kernel == Kernel::Avx2 && !rays.is_empty() {
+            let n = rays.len();
+            // Lanes past `n` repeat the last ray; they are never tested.
+            let mut qs: [Query; PACKET] = std::array::from_fn(|j| Query::new(shapes, &rays[j.min(n - 1)]));
+            let p = &qs[0].pre;
+            if qs[1..n].iter().all(|q| (q.pre.kx, q.pre.ky, q.pre.kz) == (p.kx, p.ky, p.kz)) {
+                // SAFETY: the AVX2 kernel is only chosen where the CPU runs it (`detect`,
+                // `set_kernel`); `leaves` are leaves of this tree.
+                let tmax = unsafe { self.among_packet_avx(&mut qs, n, &cands.leaves) };
+                for (j, o) in out.iter_mut().enumerate() {
+                    let q = &qs[j];
+                    *o = q.best.map(|(k, aux)| Hit { t: tmax[j], k, aux, inner: q.inner.get() });
+                }
+                return;
+            }
+        }
+        for (ray, o) in rays.iter().zip(out) {
+            *o = self.among_hit(shapes, ray, cands);
+        }
+    }
+
+    /// [`Accel::among`] for the first `n` of eight queries whose rays share their [`RayPre`]
+    /// axes: each query's closest hit goes to its `best`; returns their distances.
+    ///
+    /// # Safety
+    /// The CPU must run AVX2; `leaves` must be leaves of this tree.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn among_packet_avx(
+        &self,
+        qs: &mut [Query; PACKET],
+        n: usize,
+        leaves: &[(f32, u32)],
+    ) -> [f32; PACKET] {
+        use std::arch::x86_64::*;
+        let lanes = |f: &dyn Fn(&Query) -> f32| {
+            let a: [f32; PACKET] = std::array::from_fn(|j| f(&qs[j]));
+            _mm256_loadu_ps(a.as_ptr())
+        };
+        let mut tmax: [f32; PACKET] = std::array::from_fn(|j| qs[j].ray.tmax);
+        let tmin: [f32; PACKET] = std::array::from_fn(|j| qs[j].ray.tmin);
+        let (kx, ky, kz) = (qs[0].pre.kx, qs[0].pre.ky, qs[0].pre.kz);
+        let ray = TriRayLanes {
+            o: [lanes(&|q| q.ray.o[kx]), lanes(&|q| q.ray.o[ky]), lanes(&|q| q.ray.o[kz])],
+            s: [lanes(&|q| q.pre.sx), lanes(&|q| q.pre.sy), lanes(&|q| q.pre.sz)],
+            tmin: _mm256_loadu_ps(tmin.as_ptr()),
+        };
+        let mut tmax_v = _mm256_loadu_ps(tmax.as_ptr());
+        let mut hits = MaybeUninit::<QuadHits>::uninit();
+        // The rays still testing leaves: a ray's own query stops at the first leaf that lies
+        // past its closest hit.
+        let mut alive = (1u32 << n) - 1;
+        for &(near, leaf) in leaves {
+            let on = _mm256_cmp_ps::<_CMP_NGT_UQ>(_mm256_set1_ps(near), tmax_v);
+            alive &= _mm256_movemask_ps(on) as u32;
+            if alive == 0 {
+                break;
+            }
+            let first = leaf & ((1 << FIRST_BITS) - 1);
+            if leaf & TRI_LEAF == 0 {
+                let mut live = alive;
+                while live != 0 {
+                    let j = live.trailing_zeros() as usize;
+                    live &= live - 1;
+                    let tri_ray = TriRay::new(qs[j].ray, &qs[j].pre);
+                    self.test_leaf::<AvxTest, false>(
+                        &mut qs[j],
+                        leaf,
+                        &tri_ray,
+                        tmin[j],
+                        &mut tmax[j],
+                        &mut hits,
+                    );
+                }
+                tmax_v = _mm256_loadu_ps(tmax.as_ptr());
+                continue;
+            }
+            let count = ((leaf >> FIRST_BITS) & 3) as usize + 1;
+            let slot0 = self.prims.get_unchecked(first as usize).index as usize;
+            // SAFETY: the leaf's block of `count` triangles ([`LeafTris`]).
+            let block = self.tris.data.as_ptr().add(9 * slot0);
+            for tri in 0..count {
+                let vertex = |v: usize| [kx, ky, kz].map(|a| *block.add((3 * v + a) * count + tri));
+                let (accept, edge, t, b1, b2) =
+                    x86::tri_lanes(&ray, [vertex(0), vertex(1), vertex(2)], tmax_v, alive);
+                let k = first + tri as u32;
+                let mut m = accept;
+                while m != 0 {
+                    let j = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    tmax[j] = t[j];
+                    qs[j].best = Some((k, Vec2::new(b1[j], b2[j])));
+                }
+                // A ray through an edge exactly: the scalar test (double precision there).
+                let mut m = edge;
+                while m != 0 {
+                    let j = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let [p0, p1, p2] = self.tris.vertices(slot0 + tri);
+                    let q = &mut qs[j];
+                    if let Some((t, _, b1, b2)) = intersect_triangle(q.ray, &q.pre, tmax[j], p0, p1, p2) {
+                        if t < tmax[j] {
+                            tmax[j] = t;
+                            q.best = Some((k, Vec2::new(b1, b2)));
+                        }
+                    }
+                }
+                if accept | edge != 0 {
+                    tmax_v = _mm256_loadu_ps(tmax.as_ptr());
+                }
+            }
+        }
+        tmax
+    }
+}
+
+/// Eight rays' constants for [`x86::tri_lanes`], one ray a lane: origins and shears on the
+/// axes their (shared) [`RayPre`] permutes to x, y and z, and near ends.
+#[cfg(target_arch = "x86_64")]
+struct TriRayLanes {
+    o: [std::arch::x86_64::__m256; 3],
+    s: [std::arch::x86_64::__m256; 3],
+    tmin: std::arch::x86_64::__m256,
 }
 
 /// Most leaves [`Accel::gather`] keeps for one bundle.
@@ -1708,6 +1985,116 @@ mod tests {
                 (ray.d == Vec3::NEG_Z && scalar.is_some() && (fx == 0.0 || fy == 0.0 || fx == fy)) as u32;
         }
         assert!(hits > 3000 && on_edges > 100, "hits {hits}, rays onto edges {on_edges}");
+    }
+
+    /// Packets of eight rays (`intersect_among_packet`) find what each ray's own query finds,
+    /// bit for bit, on every kernel: leaves of triangles (some coincident, rays straight onto
+    /// their edges, where a lane takes the scalar test) and of spheres, packets whose rays share
+    /// the triangle test's axes and packets whose rays do not, rays that end among the
+    /// triangles, and packets of one to eight rays.
+    #[test]
+    fn packets_find_what_each_ray_finds() {
+        let n = 8u32;
+        let mut grid = Mesh::default();
+        for y in 0..=n {
+            for x in 0..=n {
+                grid.positions.push(Vec3::new(x as f32, y as f32, 0.0));
+            }
+        }
+        for y in 0..n {
+            for x in 0..n {
+                let i = y * (n + 1) + x;
+                grid.tris.push([i, i + 1, i + n + 2]);
+                grid.tris.push([i, i + n + 2, i + n + 1]);
+                if (x + y) % 3 == 0 {
+                    grid.tris.push([i, i + 1, i + n + 2]); // a coincident copy
+                }
+            }
+        }
+        let mut shapes = soup(600, 23);
+        shapes.push(shape(Geometry::Mesh(grid), "grid"));
+        let mut s = 19;
+        for k in 0..150 {
+            let center = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 10.0;
+            let ball = crate::geometry::Sphere { center, radius: 0.15, rot: glam::Mat3::IDENTITY };
+            shapes.push(shape(Geometry::Sphere(ball), &format!("ball {k}")));
+        }
+        let mut rays = Vec::new();
+        for k in 0..=4 * n {
+            for j in 0..=4 * n {
+                let (x, y) = (k as f32 * 0.25, j as f32 * 0.25);
+                rays.push(Ray::new(Vec3::new(x, y, 3.0), Vec3::NEG_Z));
+                rays.push(Ray::new(Vec3::new(x, y, -3.0), Vec3::Z));
+                rays.push(Ray::new(Vec3::new(x + 0.3, y - 0.2, 2.0), Vec3::new(-0.3, 0.2, -2.0).normalize()));
+            }
+        }
+        let mut s = 7;
+        for k in 0..4000 {
+            let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 14.0 - 2.0;
+            let d = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5;
+            let mut ray = Ray::new(o, d.normalize());
+            if k % 3 == 0 {
+                ray.tmax = 4.0 + xorshift(&mut s) * 4.0; // ends among the triangles
+            }
+            rays.push(ray);
+        }
+        // In the given order most packets mix the axes; sorted by them, most share them.
+        let axes = |r: &Ray| {
+            let p = RayPre::new(r.d);
+            (p.kx, p.ky, p.kz)
+        };
+        let mut sorted = rays.clone();
+        sorted.sort_by_key(axes);
+        let key = |h: Option<Hit>| h.map(|h| (h.t.to_bits(), h.k, h.aux.to_array().map(f32::to_bits)));
+        for kernel in Kernel::available() {
+            let mut accel = Accel::build(&shapes);
+            accel.set_kernel(kernel);
+            // Every leaf, each at distance 0: a lower bound for every ray, so each ray's query
+            // tests them all.
+            let mut cands = Candidates { leaves: Vec::new(), complete: true };
+            for node in &accel.nodes {
+                for (lane, &c) in node.child.iter().enumerate() {
+                    if node.used >> lane & 1 != 0 && c & LEAF != 0 {
+                        cands.leaves.push((0.0, c));
+                    }
+                }
+            }
+            assert!(cands.leaves.len() > 100);
+            let (mut shared, mut hits, mut size) = (0, 0, 0);
+            for order in [&rays, &sorted] {
+                let mut at = 0;
+                while at < order.len() {
+                    size = size % PACKET + 1; // 1, 2, ..., 8, 1, ...
+                    let packet = &order[at..(at + size).min(order.len())];
+                    at += packet.len();
+                    let mut out = [None; PACKET];
+                    accel.intersect_among_packet(&shapes, packet, &cands, &mut out[..packet.len()]);
+                    shared += packet.iter().all(|r| axes(r) == axes(&packet[0])) as u32;
+                    for (j, ray) in packet.iter().enumerate() {
+                        let own = accel.among_hit(&shapes, ray, &cands);
+                        assert_eq!(
+                            key(out[j]),
+                            key(own),
+                            "{kernel:?}: lane {j} of {}: {ray:?}",
+                            packet.len()
+                        );
+                        // The same hit as the whole tree's query, up to which of two coincident
+                        // triangles.
+                        let whole = accel.intersect(&shapes, ray).map(|it| it.t.to_bits());
+                        assert_eq!(out[j].map(|h| h.t.to_bits()), whole, "{kernel:?}: {ray:?}");
+                        if let Some(h) = out[j] {
+                            let it = accel.hit_interaction(&shapes, ray, &h);
+                            assert_eq!(it.t.to_bits(), h.t.to_bits());
+                            hits += 1;
+                        }
+                    }
+                }
+            }
+            assert!(
+                shared > 400 && hits > 4000,
+                "{kernel:?}: {shared} packets share their axes, {hits} hits"
+            );
+        }
     }
 
     fn shape(geometry: Geometry, name: &str) -> Shape {

@@ -9,7 +9,7 @@ use glam::Vec2;
 
 use super::Stats;
 use crate::bsdf::Bsdf;
-use crate::geometry::bvh::Candidates;
+use crate::geometry::bvh::Hit;
 use crate::geometry::{Ray, RayDifferentials};
 use crate::math::{mis_power, Rgb};
 use crate::sampler::SampleStream;
@@ -24,14 +24,22 @@ const REUSE_LIGHTS: usize = 16;
 /// otherwise keep it in place).
 const MAX_PASSES: u32 = 64;
 
+/// How [`li`] finds its ray's first hit.
+#[derive(Clone, Copy)]
+pub enum First {
+    /// Through the whole tree.
+    Trace,
+    /// Already found (by [`Scene::intersect_among_packet`]): the hit, or none.
+    Found(Option<Hit>),
+}
+
 /// Radiance arriving along `ray`. `diff`: the camera ray's differentials, when the plan asks
-/// for texture footprints (used at the first hit). `first`: the leaves that `ray` may hit,
-/// when it is a camera ray of a pixel whose leaves were gathered ([`Scene::intersect_among`]).
+/// for texture footprints (used at the first hit). `first`: how to find the ray's first hit.
 pub fn li(
     scene: &Scene,
     mut ray: Ray,
     diff: Option<&RayDifferentials>,
-    mut first: Option<&Candidates>,
+    mut first: First,
     s: &mut SampleStream,
     st: &mut Stats,
 ) -> Rgb {
@@ -68,9 +76,9 @@ pub fn li(
         let show_emitters = !(settings.hide_emitters && depth == 0);
         // Without light sampling at the previous vertex, emission found here is unweighted.
         let unweighted = depth == 0 || prev_delta || !plan.light_sampling;
-        let hit = match first.take() {
-            Some(cands) => scene.intersect_among(&ray, cands),
-            None => scene.intersect(&ray),
+        let hit = match std::mem::replace(&mut first, First::Trace) {
+            First::Trace => scene.intersect(&ray),
+            First::Found(hit) => hit.map(|h| scene.accel.hit_interaction(&scene.shapes, &ray, &h)),
         };
         let Some(it) = hit else {
             if plan.escaped_rays_lookup && show_emitters {

@@ -200,6 +200,17 @@ impl Scene {
         self.accel.intersect_among(&self.shapes, ray, cands)
     }
 
+    /// [`Scene::intersect_among`] for up to [`crate::geometry::bvh::PACKET`] rays of one
+    /// bundle at once, into `out` (as long as `rays`).
+    pub fn intersect_among_packet(
+        &self,
+        rays: &[Ray],
+        cands: &crate::geometry::bvh::Candidates,
+        out: &mut [Option<crate::geometry::bvh::Hit>],
+    ) {
+        self.accel.intersect_among_packet(&self.shapes, rays, cands, out)
+    }
+
     #[inline]
     pub fn occluded(&self, ray: &Ray) -> bool {
         self.accel.occluded(&self.shapes, ray)
