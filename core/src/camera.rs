@@ -381,11 +381,15 @@ mod tests {
                 assert!(gathered(&scene) == reference, "{name}: {kernel:?} gathers other leaves");
             }
             let (w, h) = (scene.film.crop_width.div_ceil(step), scene.film.crop_height.div_ceil(step));
-            let (complete, hits) = check(&scene, step, 12);
-            // The fast path is taken on many pixels (in fur, where few leaves suffice), and rays
-            // do hit things.
-            assert!(complete as u32 * 4 > w * h, "{name}: {complete} of {} pixels complete", w * h);
-            assert!(hits > 0, "{name}");
+            // On every kernel (packets of camera rays are traced together on AVX2 only).
+            for kernel in crate::geometry::bvh::Kernel::available() {
+                scene.accel.set_kernel(kernel);
+                let (complete, hits) = check(&scene, step, 12);
+                // The fast path is taken on many pixels (in fur, where few leaves suffice), and
+                // rays do hit things.
+                assert!(complete as u32 * 4 > w * h, "{name}: {complete} of {} pixels complete", w * h);
+                assert!(hits > 0, "{name}");
+            }
         }
     }
 

@@ -573,6 +573,56 @@ mod x86 {
         (accept, edge, store(t), store(_mm256_mul_ps(v, inv_det)), store(_mm256_mul_ps(w, inv_det)))
     }
 
+    /// [`super::super::shapes::intersect_sphere`] of `ball` against eight rays, one a lane: the
+    /// same IEEE operations in the same order, for the lanes in `alive`. Returns the lanes that
+    /// hit within their `[tmin, tmax)`, and the distances.
+    #[inline(always)]
+    pub unsafe fn sphere_lanes(
+        r: &super::SphereRayLanes,
+        ball: &crate::geometry::Sphere,
+        tmax: __m256,
+        alive: u32,
+    ) -> (u32, [f32; 8]) {
+        let (add, sub, mul) = (
+            |a: __m256, b: __m256| _mm256_add_ps(a, b),
+            |a: __m256, b: __m256| _mm256_sub_ps(a, b),
+            |a: __m256, b: __m256| _mm256_mul_ps(a, b),
+        );
+        let dot =
+            |a: &[__m256; 3], b: &[__m256; 3]| add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]));
+        let c = ball.center.to_array();
+        let f = [0, 1, 2].map(|k| sub(r.o[k], _mm256_set1_ps(c[k])));
+        let a = dot(&r.d, &r.d);
+        let b = dot(&f, &r.d);
+        let rr = _mm256_set1_ps(ball.radius * ball.radius);
+        let cc = sub(dot(&f, &f), rr);
+        let ba = _mm256_div_ps(b, a);
+        let l = [0, 1, 2].map(|k| sub(f[k], mul(r.d[k], ba)));
+        let disc = mul(a, sub(rr, dot(&l, &l)));
+        let neg = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(disc, _mm256_setzero_ps())) as u32;
+        if !neg & alive == 0 {
+            return (0, [0.0; 8]);
+        }
+        let root = _mm256_sqrt_ps(disc);
+        let sign = _mm256_set1_ps(-0.0);
+        // copysign(root, b), then negated.
+        let signed = _mm256_or_ps(_mm256_andnot_ps(sign, root), _mm256_and_ps(sign, b));
+        let q = _mm256_xor_ps(add(b, signed), sign);
+        let (t0, t1) = (_mm256_div_ps(q, a), _mm256_div_ps(cc, q));
+        // if t0 > t1, swap.
+        let swap = _mm256_cmp_ps::<_CMP_GT_OQ>(t0, t1);
+        let (t0, t1) = (_mm256_blendv_ps(t0, t1, swap), _mm256_blendv_ps(t1, t0, swap));
+        let within = |t: __m256| {
+            _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(t, r.tmin), _mm256_cmp_ps::<_CMP_LT_OQ>(t, tmax))
+        };
+        let (in0, in1) = (within(t0), within(t1));
+        let t = _mm256_blendv_ps(t1, t0, in0);
+        let hit = _mm256_movemask_ps(_mm256_or_ps(in0, in1)) as u32 & !neg & alive;
+        let mut out = [0.0f32; 8];
+        _mm256_storeu_ps(out.as_mut_ptr(), t);
+        (hit, out)
+    }
+
     /// [`super::test_scalar`] on two halves of four lanes.
     #[inline(always)]
     pub unsafe fn test_sse(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
@@ -754,6 +804,7 @@ impl QuadHits {
 }
 
 /// One closest-hit or any-hit query's state, handed to [`Accel::traverse`]'s leaf callback.
+#[derive(Clone)]
 struct Query<'a> {
     shapes: &'a [Shape],
     ray: &'a Ray,
@@ -1601,10 +1652,12 @@ impl Accel {
     ) {
         assert!(rays.len() <= PACKET && out.len() == rays.len(), "{} rays into {}", rays.len(), out.len());
         #[cfg(target_arch = "x86_64")]
-        if cands.complete && self.kernel == Kernel::Avx2 && !rays.is_empty() {
+        if cands.complete && self.kernel == Kernel::Avx2 && rays.len() > 1 {
             let n = rays.len();
             // Lanes past `n` repeat the last ray; they are never tested.
-            let mut qs: [Query; PACKET] = std::array::from_fn(|j| Query::new(shapes, &rays[j.min(n - 1)]));
+            let last = Query::new(shapes, &rays[n - 1]);
+            let mut qs: [Query; PACKET] =
+                std::array::from_fn(|j| if j + 1 < n { Query::new(shapes, &rays[j]) } else { last.clone() });
             let p = &qs[0].pre;
             if qs[1..n].iter().all(|q| (q.pre.kx, q.pre.ky, q.pre.kz) == (p.kx, p.ky, p.kz)) {
                 // SAFETY: the AVX2 kernel is only chosen where the CPU runs it (`detect`,
@@ -1636,19 +1689,26 @@ impl Accel {
         leaves: &[(f32, u32)],
     ) -> [f32; PACKET] {
         use std::arch::x86_64::*;
-        let lanes = |f: &dyn Fn(&Query) -> f32| {
-            let a: [f32; PACKET] = std::array::from_fn(|j| f(&qs[j]));
+        let shapes = qs[0].shapes;
+        let rays: [&Ray; PACKET] = std::array::from_fn(|j| qs[j].ray);
+        let lanes = |f: &dyn Fn(&Ray) -> f32| {
+            let a: [f32; PACKET] = std::array::from_fn(|j| f(rays[j]));
             _mm256_loadu_ps(a.as_ptr())
         };
-        let mut tmax: [f32; PACKET] = std::array::from_fn(|j| qs[j].ray.tmax);
-        let tmin: [f32; PACKET] = std::array::from_fn(|j| qs[j].ray.tmin);
+        let mut tmax: [f32; PACKET] = std::array::from_fn(|j| rays[j].tmax);
+        let tmin: [f32; PACKET] = std::array::from_fn(|j| rays[j].tmin);
         let (kx, ky, kz) = (qs[0].pre.kx, qs[0].pre.ky, qs[0].pre.kz);
+        let shear = |f: fn(&RayPre) -> f32| {
+            let a: [f32; PACKET] = std::array::from_fn(|j| f(&qs[j].pre));
+            _mm256_loadu_ps(a.as_ptr())
+        };
         let ray = TriRayLanes {
-            o: [lanes(&|q| q.ray.o[kx]), lanes(&|q| q.ray.o[ky]), lanes(&|q| q.ray.o[kz])],
-            s: [lanes(&|q| q.pre.sx), lanes(&|q| q.pre.sy), lanes(&|q| q.pre.sz)],
+            o: [lanes(&|r| r.o[kx]), lanes(&|r| r.o[ky]), lanes(&|r| r.o[kz])],
+            s: [shear(|p| p.sx), shear(|p| p.sy), shear(|p| p.sz)],
             tmin: _mm256_loadu_ps(tmin.as_ptr()),
         };
         let mut tmax_v = _mm256_loadu_ps(tmax.as_ptr());
+        let mut rays_xyz: Option<SphereRayLanes> = None;
         let mut hits = MaybeUninit::<QuadHits>::uninit();
         // The rays still testing leaves: a ray's own query stops at the first leaf that lies
         // past its closest hit.
@@ -1660,7 +1720,35 @@ impl Accel {
                 break;
             }
             let first = leaf & ((1 << FIRST_BITS) - 1);
+            let count = ((leaf >> FIRST_BITS) & 3) as usize + 1;
             if leaf & TRI_LEAF == 0 {
+                // A leaf of spheres: each against all the rays at once.
+                let sphere = |j: usize| {
+                    let prim = self.prims.get_unchecked(first as usize + j);
+                    match &shapes[(prim.shape & SHAPE) as usize].geometry {
+                        Geometry::Sphere(s) if prim.shape & (TRIANGLE | CURVE) == 0 => Some(s),
+                        _ => None,
+                    }
+                };
+                if (0..count).all(|j| sphere(j).is_some()) {
+                    let d = rays_xyz.get_or_insert_with(|| SphereRayLanes {
+                        o: [0, 1, 2].map(|a| lanes(&|r| r.o[a])),
+                        d: [0, 1, 2].map(|a| lanes(&|r| r.d[a])),
+                        tmin: ray.tmin,
+                    });
+                    for j in 0..count {
+                        let Some(ball) = sphere(j) else { continue };
+                        let (mut accept, t) = x86::sphere_lanes(d, ball, tmax_v, alive);
+                        while accept != 0 {
+                            let lane = accept.trailing_zeros() as usize;
+                            accept &= accept - 1;
+                            tmax[lane] = t[lane];
+                            qs[lane].best = Some((first + j as u32, Vec2::ZERO));
+                        }
+                        tmax_v = _mm256_loadu_ps(tmax.as_ptr());
+                    }
+                    continue;
+                }
                 let mut live = alive;
                 while live != 0 {
                     let j = live.trailing_zeros() as usize;
@@ -1678,7 +1766,6 @@ impl Accel {
                 tmax_v = _mm256_loadu_ps(tmax.as_ptr());
                 continue;
             }
-            let count = ((leaf >> FIRST_BITS) & 3) as usize + 1;
             let slot0 = self.prims.get_unchecked(first as usize).index as usize;
             // SAFETY: the leaf's block of `count` triangles ([`LeafTris`]).
             let block = self.tris.data.as_ptr().add(9 * slot0);
@@ -1715,6 +1802,14 @@ impl Accel {
         }
         tmax
     }
+}
+
+/// Eight rays for [`x86::sphere_lanes`], one a lane: origins, directions and near ends.
+#[cfg(target_arch = "x86_64")]
+struct SphereRayLanes {
+    o: [std::arch::x86_64::__m256; 3],
+    d: [std::arch::x86_64::__m256; 3],
+    tmin: std::arch::x86_64::__m256,
 }
 
 /// Eight rays' constants for [`x86::tri_lanes`], one ray a lane: origins and shears on the
