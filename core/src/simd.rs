@@ -337,6 +337,33 @@ impl F4 {
     }
 }
 
+/// [`F4::atan2`] on eight lanes (AVX): the same operations in the same order, so each lane is
+/// [`crate::math::fast_atan2`] bit for bit.
+///
+/// # Safety
+/// The CPU must run AVX.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub unsafe fn atan2_avx(y: __m256, x: __m256) -> __m256 {
+    use _mm256_set1_ps as s;
+    let sign = s(-0.0);
+    let (ax, ay) = (_mm256_andnot_ps(sign, x), _mm256_andnot_ps(sign, y));
+    let steep = _mm256_cmp_ps::<_CMP_LT_OQ>(ax, ay);
+    let (num, den) = (_mm256_blendv_ps(ay, ax, steep), _mm256_blendv_ps(ax, ay, steep));
+    let zero_den = _mm256_cmp_ps::<_CMP_EQ_OQ>(den, s(0.0));
+    let a = _mm256_blendv_ps(_mm256_div_ps(num, den), _mm256_mul_ps(s(0.0), num), zero_den);
+    let z = _mm256_mul_ps(a, a);
+    let mut p = s(crate::math::ATAN_C[7]);
+    for &c in crate::math::ATAN_C[..7].iter().rev() {
+        p = _mm256_add_ps(_mm256_mul_ps(p, z), s(c));
+    }
+    let r = _mm256_mul_ps(a, p);
+    let r = _mm256_blendv_ps(r, _mm256_sub_ps(s(std::f32::consts::FRAC_PI_2), r), steep);
+    // Where x's sign bit is set (the blend reads only that bit).
+    let r = _mm256_blendv_ps(r, _mm256_sub_ps(s(std::f32::consts::PI), r), x);
+    _mm256_or_ps(_mm256_andnot_ps(sign, r), _mm256_and_ps(sign, y))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -428,5 +455,31 @@ mod tests {
                 assert_eq!(g.to_bits(), crate::math::fast_atan2(yk, xk).to_bits(), "atan2({yk}, {xk})");
             }
         }
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx") {
+            for c in pairs.chunks(8) {
+                let lane = |k: usize| c.get(k).copied().unwrap_or((1.0, 1.0));
+                let (y, x): ([f32; 8], [f32; 8]) =
+                    (std::array::from_fn(|k| lane(k).0), std::array::from_fn(|k| lane(k).1));
+                let mut got = [0.0f32; 8];
+                // SAFETY: the CPU runs AVX (checked above); the arrays hold eight floats.
+                unsafe { avx_atan2_into(&y, &x, &mut got) };
+                for (k, g) in got.iter().enumerate() {
+                    let (yk, xk) = lane(k);
+                    assert_eq!(
+                        g.to_bits(),
+                        crate::math::fast_atan2(yk, xk).to_bits(),
+                        "AVX atan2({yk}, {xk})"
+                    );
+                }
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    unsafe fn avx_atan2_into(y: &[f32; 8], x: &[f32; 8], out: &mut [f32; 8]) {
+        let r = super::atan2_avx(_mm256_loadu_ps(y.as_ptr()), _mm256_loadu_ps(x.as_ptr()));
+        _mm256_storeu_ps(out.as_mut_ptr(), r);
     }
 }

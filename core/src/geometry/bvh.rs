@@ -485,92 +485,130 @@ mod x86 {
         let none = [0.0f32; 8];
         let [ox, oy, oz] = r.o;
         let [sx, sy, sz] = r.s;
-        let vertex = |v: usize| {
-            let az = _mm256_sub_ps(_mm256_set1_ps(p[v][2]), oz);
-            let x = _mm256_add_ps(_mm256_sub_ps(_mm256_set1_ps(p[v][0]), ox), _mm256_mul_ps(sx, az));
-            let y = _mm256_add_ps(_mm256_sub_ps(_mm256_set1_ps(p[v][1]), oy), _mm256_mul_ps(sy, az));
-            (x, y, az)
-        };
-        let ((ax, ay, a_z), (bx, by, b_z), (cx, cy, c_z)) = (vertex(0), vertex(1), vertex(2));
+        // (Macros, not closures: this runs in the packet's inner loop, and a closure the
+        // inliner leaves out of line passes its vectors through memory.)
+        macro_rules! vertex {
+            ($v:expr) => {{
+                let az = _mm256_sub_ps(_mm256_set1_ps(p[$v][2]), oz);
+                let x = _mm256_add_ps(_mm256_sub_ps(_mm256_set1_ps(p[$v][0]), ox), _mm256_mul_ps(sx, az));
+                let y = _mm256_add_ps(_mm256_sub_ps(_mm256_set1_ps(p[$v][1]), oy), _mm256_mul_ps(sy, az));
+                (x, y, az)
+            }};
+        }
+        let ((ax, ay, a_z), (bx, by, b_z), (cx, cy, c_z)) = (vertex!(0), vertex!(1), vertex!(2));
         let u = _mm256_sub_ps(_mm256_mul_ps(cx, by), _mm256_mul_ps(cy, bx));
         let v = _mm256_sub_ps(_mm256_mul_ps(ax, cy), _mm256_mul_ps(ay, cx));
         let w = _mm256_sub_ps(_mm256_mul_ps(bx, ay), _mm256_mul_ps(by, ax));
         let zero = _mm256_setzero_ps();
-        let eq = |a: __m256| _mm256_cmp_ps::<_CMP_EQ_OQ>(a, zero);
-        let lt = |a: __m256, b: __m256| _mm256_cmp_ps::<_CMP_LT_OQ>(a, b);
-        let gt = |a: __m256, b: __m256| _mm256_cmp_ps::<_CMP_GT_OQ>(a, b);
-        let or = |a: __m256, b: __m256| _mm256_or_ps(a, b);
-        let bits = |a: __m256| _mm256_movemask_ps(a) as u32;
-        let edge = bits(or(or(eq(u), eq(v)), eq(w))) & alive;
+        macro_rules! eq {
+            ($a:expr) => {
+                _mm256_cmp_ps::<_CMP_EQ_OQ>($a, zero)
+            };
+        }
+        macro_rules! lt {
+            ($a:expr, $b:expr) => {
+                _mm256_cmp_ps::<_CMP_LT_OQ>($a, $b)
+            };
+        }
+        macro_rules! gt {
+            ($a:expr, $b:expr) => {
+                _mm256_cmp_ps::<_CMP_GT_OQ>($a, $b)
+            };
+        }
+        macro_rules! or {
+            ($a:expr, $b:expr) => {
+                _mm256_or_ps($a, $b)
+            };
+        }
+        macro_rules! bits {
+            ($a:expr) => {
+                _mm256_movemask_ps($a) as u32
+            };
+        }
+        let edge = bits!(or!(or!(eq!(u), eq!(v)), eq!(w))) & alive;
         let alive = alive & !edge;
-        let any_neg = or(or(lt(u, zero), lt(v, zero)), lt(w, zero));
-        let any_pos = or(or(gt(u, zero), gt(v, zero)), gt(w, zero));
+        let any_neg = or!(or!(lt!(u, zero), lt!(v, zero)), lt!(w, zero));
+        let any_pos = or!(or!(gt!(u, zero), gt!(v, zero)), gt!(w, zero));
         let det = _mm256_add_ps(_mm256_add_ps(u, v), w);
-        let mut miss = or(_mm256_and_ps(any_neg, any_pos), eq(det));
+        let mut miss = or!(_mm256_and_ps(any_neg, any_pos), eq!(det));
         // Most triangles are passed by: out as soon as every lane has missed.
-        if !bits(miss) & alive == 0 {
+        if !bits!(miss) & alive == 0 {
             return (0, edge, none, none, none);
         }
         let (az, bz, cz) = (_mm256_mul_ps(sz, a_z), _mm256_mul_ps(sz, b_z), _mm256_mul_ps(sz, c_z));
         let t_scaled =
             _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(u, az), _mm256_mul_ps(v, bz)), _mm256_mul_ps(w, cz));
         let (lo, hi) = (_mm256_mul_ps(r.tmin, det), _mm256_mul_ps(tmax, det));
-        let neg_out = or(_mm256_cmp_ps::<_CMP_GE_OQ>(t_scaled, lo), lt(t_scaled, hi));
-        let pos_out = or(_mm256_cmp_ps::<_CMP_LE_OQ>(t_scaled, lo), gt(t_scaled, hi));
-        miss = or(miss, _mm256_and_ps(lt(det, zero), neg_out));
-        miss = or(miss, _mm256_and_ps(gt(det, zero), pos_out));
-        if !bits(miss) & alive == 0 {
+        let neg_out = or!(_mm256_cmp_ps::<_CMP_GE_OQ>(t_scaled, lo), lt!(t_scaled, hi));
+        let pos_out = or!(_mm256_cmp_ps::<_CMP_LE_OQ>(t_scaled, lo), gt!(t_scaled, hi));
+        miss = or!(miss, _mm256_and_ps(lt!(det, zero), neg_out));
+        miss = or!(miss, _mm256_and_ps(gt!(det, zero), pos_out));
+        if !bits!(miss) & alive == 0 {
             return (0, edge, none, none, none);
         }
         let inv_det = _mm256_div_ps(_mm256_set1_ps(1.0), det);
         let t = _mm256_mul_ps(t_scaled, inv_det);
         // The error bound of t, as `quad_sse` computes it.
-        let abs = |x: __m256| _mm256_andnot_ps(_mm256_set1_ps(-0.0), x);
-        let max3 = |a: __m256, b: __m256, c: __m256| _mm256_max_ps(_mm256_max_ps(abs(a), abs(b)), abs(c));
-        let g = |n: i32| _mm256_set1_ps(gamma(n));
-        let max_zt = max3(az, bz, cz);
-        let delta_z = _mm256_mul_ps(g(3), max_zt);
-        let max_xt = max3(ax, bx, cx);
-        let max_yt = max3(ay, by, cy);
-        let delta_x = _mm256_mul_ps(g(5), _mm256_add_ps(max_xt, max_zt));
-        let delta_y = _mm256_mul_ps(g(5), _mm256_add_ps(max_yt, max_zt));
+        macro_rules! abs {
+            ($x:expr) => {
+                _mm256_andnot_ps(_mm256_set1_ps(-0.0), $x)
+            };
+        }
+        macro_rules! max3 {
+            ($a:expr, $b:expr, $c:expr) => {
+                _mm256_max_ps(_mm256_max_ps(abs!($a), abs!($b)), abs!($c))
+            };
+        }
+        macro_rules! g {
+            ($n:expr) => {
+                _mm256_set1_ps(gamma($n))
+            };
+        }
+        let max_zt = max3!(az, bz, cz);
+        let delta_z = _mm256_mul_ps(g!(3), max_zt);
+        let max_xt = max3!(ax, bx, cx);
+        let max_yt = max3!(ay, by, cy);
+        let delta_x = _mm256_mul_ps(g!(5), _mm256_add_ps(max_xt, max_zt));
+        let delta_y = _mm256_mul_ps(g!(5), _mm256_add_ps(max_yt, max_zt));
         let delta_e = _mm256_mul_ps(
             _mm256_set1_ps(2.0),
             _mm256_add_ps(
                 _mm256_add_ps(
-                    _mm256_mul_ps(_mm256_mul_ps(g(2), max_xt), max_yt),
+                    _mm256_mul_ps(_mm256_mul_ps(g!(2), max_xt), max_yt),
                     _mm256_mul_ps(delta_y, max_xt),
                 ),
                 _mm256_mul_ps(delta_x, max_yt),
             ),
         );
-        let max_e = max3(u, v, w);
+        let max_e = max3!(u, v, w);
         let delta_t = _mm256_mul_ps(
             _mm256_mul_ps(
                 _mm256_set1_ps(3.0),
                 _mm256_add_ps(
                     _mm256_add_ps(
-                        _mm256_mul_ps(_mm256_mul_ps(g(3), max_e), max_zt),
+                        _mm256_mul_ps(_mm256_mul_ps(g!(3), max_e), max_zt),
                         _mm256_mul_ps(delta_e, max_zt),
                     ),
                     _mm256_mul_ps(delta_z, max_e),
                 ),
             ),
-            abs(inv_det),
+            abs!(inv_det),
         );
-        miss = or(miss, _mm256_cmp_ps::<_CMP_LE_OQ>(t, delta_t));
+        miss = or!(miss, _mm256_cmp_ps::<_CMP_LE_OQ>(t, delta_t));
         // And closer than the ray's closest hit so far, as the leaf loop asks of a hit.
-        let closer = lt(t, tmax);
-        let accept = !bits(miss) & bits(closer) & alive;
+        let closer = lt!(t, tmax);
+        let accept = !bits!(miss) & bits!(closer) & alive;
         if accept == 0 {
             return (0, edge, none, none, none);
         }
-        let store = |x: __m256| {
-            let mut a = [0.0f32; 8];
-            _mm256_storeu_ps(a.as_mut_ptr(), x);
-            a
-        };
-        (accept, edge, store(t), store(_mm256_mul_ps(v, inv_det)), store(_mm256_mul_ps(w, inv_det)))
+        macro_rules! store {
+            ($x:expr) => {{
+                let mut a = [0.0f32; 8];
+                _mm256_storeu_ps(a.as_mut_ptr(), $x);
+                a
+            }};
+        }
+        (accept, edge, store!(t), store!(_mm256_mul_ps(v, inv_det)), store!(_mm256_mul_ps(w, inv_det)))
     }
 
     /// [`super::super::shapes::intersect_sphere`] of `ball` against eight rays, one a lane: the
@@ -583,22 +621,27 @@ mod x86 {
         tmax: __m256,
         alive: u32,
     ) -> (u32, [f32; 8]) {
-        let (add, sub, mul) = (
-            |a: __m256, b: __m256| _mm256_add_ps(a, b),
-            |a: __m256, b: __m256| _mm256_sub_ps(a, b),
-            |a: __m256, b: __m256| _mm256_mul_ps(a, b),
-        );
-        let dot =
-            |a: &[__m256; 3], b: &[__m256; 3]| add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]));
-        let c = ball.center.to_array();
-        let f = [0, 1, 2].map(|k| sub(r.o[k], _mm256_set1_ps(c[k])));
-        let a = dot(&r.d, &r.d);
-        let b = dot(&f, &r.d);
+        use _mm256_add_ps as add;
+        use _mm256_mul_ps as mul;
+        use _mm256_sub_ps as sub;
+        macro_rules! dot {
+            ($a:expr, $b:expr) => {
+                add(add(mul($a[0], $b[0]), mul($a[1], $b[1])), mul($a[2], $b[2]))
+            };
+        }
+        let c = ball.center;
+        let f = [
+            sub(r.o[0], _mm256_set1_ps(c.x)),
+            sub(r.o[1], _mm256_set1_ps(c.y)),
+            sub(r.o[2], _mm256_set1_ps(c.z)),
+        ];
+        let a = dot!(r.d, r.d);
+        let b = dot!(f, r.d);
         let rr = _mm256_set1_ps(ball.radius * ball.radius);
-        let cc = sub(dot(&f, &f), rr);
+        let cc = sub(dot!(f, f), rr);
         let ba = _mm256_div_ps(b, a);
-        let l = [0, 1, 2].map(|k| sub(f[k], mul(r.d[k], ba)));
-        let disc = mul(a, sub(rr, dot(&l, &l)));
+        let l = [sub(f[0], mul(r.d[0], ba)), sub(f[1], mul(r.d[1], ba)), sub(f[2], mul(r.d[2], ba))];
+        let disc = mul(a, sub(rr, dot!(l, l)));
         let neg = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(disc, _mm256_setzero_ps())) as u32;
         if !neg & alive == 0 {
             return (0, [0.0; 8]);
@@ -612,10 +655,10 @@ mod x86 {
         // if t0 > t1, swap.
         let swap = _mm256_cmp_ps::<_CMP_GT_OQ>(t0, t1);
         let (t0, t1) = (_mm256_blendv_ps(t0, t1, swap), _mm256_blendv_ps(t1, t0, swap));
-        let within = |t: __m256| {
-            _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(t, r.tmin), _mm256_cmp_ps::<_CMP_LT_OQ>(t, tmax))
-        };
-        let (in0, in1) = (within(t0), within(t1));
+        let in0 =
+            _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(t0, r.tmin), _mm256_cmp_ps::<_CMP_LT_OQ>(t0, tmax));
+        let in1 =
+            _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(t1, r.tmin), _mm256_cmp_ps::<_CMP_LT_OQ>(t1, tmax));
         let t = _mm256_blendv_ps(t1, t0, in0);
         let hit = _mm256_movemask_ps(_mm256_or_ps(in0, in1)) as u32 & !neg & alive;
         let mut out = [0.0f32; 8];
@@ -1691,20 +1734,27 @@ impl Accel {
         use std::arch::x86_64::*;
         let shapes = qs[0].shapes;
         let rays: [&Ray; PACKET] = std::array::from_fn(|j| qs[j].ray);
-        let lanes = |f: &dyn Fn(&Ray) -> f32| {
-            let a: [f32; PACKET] = std::array::from_fn(|j| f(rays[j]));
-            _mm256_loadu_ps(a.as_ptr())
-        };
+        macro_rules! lanes {
+            (|$r:ident| $e:expr) => {{
+                let a: [f32; PACKET] = std::array::from_fn(|j| {
+                    let $r = rays[j];
+                    $e
+                });
+                _mm256_loadu_ps(a.as_ptr())
+            }};
+        }
         let mut tmax: [f32; PACKET] = std::array::from_fn(|j| rays[j].tmax);
         let tmin: [f32; PACKET] = std::array::from_fn(|j| rays[j].tmin);
         let (kx, ky, kz) = (qs[0].pre.kx, qs[0].pre.ky, qs[0].pre.kz);
-        let shear = |f: fn(&RayPre) -> f32| {
-            let a: [f32; PACKET] = std::array::from_fn(|j| f(&qs[j].pre));
-            _mm256_loadu_ps(a.as_ptr())
-        };
+        macro_rules! shear {
+            ($s:ident) => {{
+                let a: [f32; PACKET] = std::array::from_fn(|j| qs[j].pre.$s);
+                _mm256_loadu_ps(a.as_ptr())
+            }};
+        }
         let ray = TriRayLanes {
-            o: [lanes(&|r| r.o[kx]), lanes(&|r| r.o[ky]), lanes(&|r| r.o[kz])],
-            s: [shear(|p| p.sx), shear(|p| p.sy), shear(|p| p.sz)],
+            o: [lanes!(|r| r.o[kx]), lanes!(|r| r.o[ky]), lanes!(|r| r.o[kz])],
+            s: [shear!(sx), shear!(sy), shear!(sz)],
             tmin: _mm256_loadu_ps(tmin.as_ptr()),
         };
         let mut tmax_v = _mm256_loadu_ps(tmax.as_ptr());
@@ -1732,8 +1782,8 @@ impl Accel {
                 };
                 if (0..count).all(|j| sphere(j).is_some()) {
                     let d = rays_xyz.get_or_insert_with(|| SphereRayLanes {
-                        o: [0, 1, 2].map(|a| lanes(&|r| r.o[a])),
-                        d: [0, 1, 2].map(|a| lanes(&|r| r.d[a])),
+                        o: [lanes!(|r| r.o.x), lanes!(|r| r.o.y), lanes!(|r| r.o.z)],
+                        d: [lanes!(|r| r.d.x), lanes!(|r| r.d.y), lanes!(|r| r.d.z)],
                         tmin: ray.tmin,
                     });
                     for j in 0..count {
@@ -1770,9 +1820,13 @@ impl Accel {
             // SAFETY: the leaf's block of `count` triangles ([`LeafTris`]).
             let block = self.tris.data.as_ptr().add(9 * slot0);
             for tri in 0..count {
-                let vertex = |v: usize| [kx, ky, kz].map(|a| *block.add((3 * v + a) * count + tri));
+                macro_rules! vertex {
+                    ($v:expr) => {
+                        [kx, ky, kz].map(|a| *block.add((3 * $v + a) * count + tri))
+                    };
+                }
                 let (accept, edge, t, b1, b2) =
-                    x86::tri_lanes(&ray, [vertex(0), vertex(1), vertex(2)], tmax_v, alive);
+                    x86::tri_lanes(&ray, [vertex!(0), vertex!(1), vertex!(2)], tmax_v, alive);
                 let k = first + tri as u32;
                 let mut m = accept;
                 while m != 0 {

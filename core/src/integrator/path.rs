@@ -5,12 +5,13 @@
 //! Depth follows Mitsuba: the camera ray's hit is depth 0; emission is gathered at every depth;
 //! a vertex at depth d scatters only if d + 1 < max_depth.
 
-use glam::Vec2;
+use glam::{Vec2, Vec3};
 
 use super::Stats;
 use crate::bsdf::Bsdf;
 use crate::geometry::bvh::Hit;
 use crate::geometry::{Ray, RayDifferentials};
+use crate::light::Light;
 use crate::math::{mis_power, Rgb};
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
@@ -220,6 +221,38 @@ pub fn li(
         }
     }
     l
+}
+
+/// What [`li`] returns for camera rays that hit nothing (their directions `d`, at most eight),
+/// into `out`, bit for bit, and its counts: each infinite light's radiance along each, an
+/// environment map's eight at once ([`crate::light::envmap::EnvMap::eval_many`]). False, with
+/// nothing done, where [`li`] would not simply look them up (`max_depth` 0, hidden emitters,
+/// the lookup ablated).
+pub fn li_escaped(scene: &Scene, d: &[Vec3], out: &mut [Rgb], st: &mut Stats) -> bool {
+    let settings = &scene.integrator;
+    if settings.max_depth == 0 || settings.hide_emitters || !scene.techniques.escaped_rays_lookup {
+        return false;
+    }
+    let n = d.len();
+    out[..n].fill(Rgb::ZERO);
+    let mut le = [Rgb::ZERO; 8];
+    for &k in &scene.infinite_lights {
+        match &scene.lights[k as usize] {
+            Light::Envmap(e) => e.eval_many(d, &mut le[..n]),
+            light => {
+                for (le, d) in le.iter_mut().zip(d) {
+                    *le = light.le_infinite(*d);
+                }
+            }
+        }
+        // As li adds a light found by a camera ray: beta 1, weight 1.
+        for (l, le) in out.iter_mut().zip(&le[..n]) {
+            *l += Rgb::ONE * *le * 1.0;
+        }
+    }
+    st.rays += n as u64;
+    st.escaped_lookups += n as u64;
+    true
 }
 
 /// Scene loading: `path` (`max_depth` -1 = unlimited, `rr_depth` 5, `hide_emitters`).
