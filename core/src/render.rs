@@ -137,27 +137,29 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, packets: bool) -> (Acc
                 let want = if packets { (r.s1 - i).min(PACKET as u64) as usize } else { 1 };
                 let (mut streams, n) = seeds.streams::<PACKET>(i, want);
                 let mut film_uv = [(0.0f32, 0.0f32); PACKET];
-                let mut rays = [Ray::new(Vec3::ZERO, Vec3::Z); PACKET];
-                let mut diffs = [None; PACKET];
+                let (mut pos, mut lens_u) = ([Vec2::ZERO; PACKET], [Vec2::ZERO; PACKET]);
                 for j in 0..n {
                     let [fx, fy, lx, ly] = streams[j].next_4d();
-                    let pos = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
-                    let lens_u = Vec2::new(lx, ly);
-                    let camera_ray = |pos: Vec2| match &cam.lens {
-                        None => cam.ray_pinhole(pos),
-                        Some(lens) => cam.ray_thin_lens(lens, pos, lens_u),
-                    };
-                    if cam.lens.is_some() {
-                        st.lens_samples += 1;
-                    }
                     film_uv[j] = (fx, fy);
-                    rays[j] = camera_ray(pos);
+                    pos[j] = Vec2::new(fx_px as f32 + fx, fy_px as f32 + fy);
+                    lens_u[j] = Vec2::new(lx, ly);
+                }
+                if cam.lens.is_some() {
+                    st.lens_samples += n as u64;
+                }
+                let mut rays = [Ray::new(Vec3::ZERO, Vec3::Z); PACKET];
+                cam.rays(&pos[..n], &lens_u[..n], &mut rays[..n]);
+                let mut diffs = [None; PACKET];
+                if scene.techniques.footprints {
                     // Differentials to a neighbour FOOTPRINT_PIXELS away: the pixel filter
                     // already averages many samples, so a full pixel would blur twice.
-                    diffs[j] = scene.techniques.footprints.then(|| RayDifferentials {
-                        rx: camera_ray(pos + Vec2::new(FOOTPRINT_PIXELS, 0.0)),
-                        ry: camera_ray(pos + Vec2::new(0.0, FOOTPRINT_PIXELS)),
-                    });
+                    let (mut rx, mut ry) = ([rays[0]; PACKET], [rays[0]; PACKET]);
+                    let shifted = |by: Vec2| -> [Vec2; PACKET] { std::array::from_fn(|j| pos[j] + by) };
+                    cam.rays(&shifted(Vec2::new(FOOTPRINT_PIXELS, 0.0))[..n], &lens_u[..n], &mut rx[..n]);
+                    cam.rays(&shifted(Vec2::new(0.0, FOOTPRINT_PIXELS))[..n], &lens_u[..n], &mut ry[..n]);
+                    for j in 0..n {
+                        diffs[j] = Some(RayDifferentials { rx: rx[j], ry: ry[j] });
+                    }
                 }
                 let mut hits = [None; PACKET];
                 // The radiance of the rays that hit nothing, looked up together (bit j: ray j's
