@@ -65,9 +65,9 @@ impl Camera {
         let n = pos.len();
         assert!(n <= 8 && lens_u.len() >= n && out.len() >= n, "{n} rays");
         #[cfg(target_arch = "x86_64")]
-        if self.lens.is_none() && n > 1 && std::is_x86_feature_detected!("avx2") {
+        if n > 1 && std::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU runs AVX2 (checked).
-            unsafe { self.rays_pinhole_avx2(pos, out) };
+            unsafe { self.rays_avx2(pos, lens_u, out) };
             return;
         }
         for j in 0..n {
@@ -78,59 +78,132 @@ impl Camera {
         }
     }
 
-    /// [`Camera::rays`] of a pinhole: [`Camera::film_dir`] and [`Camera::finish`] on eight
-    /// lanes, the same operations in the same order (glam's `Mat4::transform_vector3` sums
-    /// the columns x, y, z in turn; `Vec3::length` is the root of x x + y y + z z).
+    /// [`Camera::rays`] on eight lanes: [`Camera::film_dir`], the lens's point
+    /// ([`square_to_uniform_disk_concentric`]) and [`Camera::finish`], the same operations in
+    /// the same order (glam's `Mat4::transform_vector3` and `transform_point3` sum the columns
+    /// x, y, z (and w) in turn; `Vec3::length` is the root of x x + y y + z z).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn rays_pinhole_avx2(&self, pos: &[Vec2], out: &mut [Ray]) {
+    unsafe fn rays_avx2(&self, pos: &[Vec2], lens_u: &[Vec2], out: &mut [Ray]) {
+        use _mm256_add_ps as add;
+        use _mm256_mul_ps as mul;
+        use _mm256_set1_ps as s;
+        use _mm256_sub_ps as sub;
         use std::arch::x86_64::*;
         let n = pos.len();
         macro_rules! lane {
-            ($c:ident) => {{
-                let a: [f32; 8] = std::array::from_fn(|j| pos[j.min(n - 1)].$c);
+            ($v:ident . $c:ident) => {{
+                let a: [f32; 8] = std::array::from_fn(|j| $v[j.min(n - 1)].$c);
                 _mm256_loadu_ps(a.as_ptr())
             }};
         }
-        use _mm256_set1_ps as s;
         let (w, h) = self.film_size;
         let neg = s(-0.0);
-        let nx = _mm256_sub_ps(_mm256_div_ps(_mm256_mul_ps(s(2.0), lane!(x)), s(w as f32)), s(1.0));
-        let ny = _mm256_sub_ps(_mm256_div_ps(_mm256_mul_ps(s(2.0), lane!(y)), s(h as f32)), s(1.0));
-        let dx = _mm256_mul_ps(_mm256_xor_ps(nx, neg), s(self.tan_half.x));
-        let dy = _mm256_mul_ps(_mm256_xor_ps(ny, neg), s(self.tan_half.y));
+        let nx = sub(_mm256_div_ps(mul(s(2.0), lane!(pos.x)), s(w as f32)), s(1.0));
+        let ny = sub(_mm256_div_ps(mul(s(2.0), lane!(pos.y)), s(h as f32)), s(1.0));
+        let film = [
+            mul(_mm256_xor_ps(nx, neg), s(self.tan_half.x)),
+            mul(_mm256_xor_ps(ny, neg), s(self.tan_half.y)),
+            s(1.0),
+        ];
+        // The ray's origin and direction in camera space.
+        let zero = _mm256_setzero_ps();
+        let (o, d) = match &self.lens {
+            None => ([zero; 3], film),
+            Some(lens) => {
+                let f = s(lens.focus_distance);
+                let focus = [mul(film[0], f), mul(film[1], f), mul(film[2], f)];
+                let x = sub(mul(s(2.0), lane!(lens_u.x)), s(1.0));
+                let y = sub(mul(s(2.0), lane!(lens_u.y)), s(1.0));
+                let centre =
+                    _mm256_and_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(x, zero), _mm256_cmp_ps::<_CMP_EQ_OQ>(y, zero));
+                let abs = |v: __m256| _mm256_andnot_ps(neg, v);
+                let steep = _mm256_cmp_ps::<_CMP_LE_OQ>(abs(x), abs(y));
+                let (num, r) = (_mm256_blendv_ps(y, x, steep), _mm256_blendv_ps(x, y, steep));
+                let a = mul(s(std::f32::consts::FRAC_PI_4), _mm256_div_ps(num, r));
+                let z = mul(a, a);
+                let sin = mul(
+                    a,
+                    add(
+                        s(1.0),
+                        mul(
+                            z,
+                            add(
+                                s(-1.0 / 6.0),
+                                mul(
+                                    z,
+                                    add(
+                                        s(1.0 / 120.0),
+                                        mul(z, add(s(-1.0 / 5040.0), mul(z, s(1.0 / 362_880.0)))),
+                                    ),
+                                ),
+                            ),
+                        ),
+                    ),
+                );
+                let cos = add(
+                    s(1.0),
+                    mul(
+                        z,
+                        add(
+                            s(-0.5),
+                            mul(
+                                z,
+                                add(
+                                    s(1.0 / 24.0),
+                                    mul(
+                                        z,
+                                        add(
+                                            s(-1.0 / 720.0),
+                                            mul(z, add(s(1.0 / 40_320.0), mul(z, s(-1.0 / 3_628_800.0)))),
+                                        ),
+                                    ),
+                                ),
+                            ),
+                        ),
+                    ),
+                );
+                let (sin, cos) = (_mm256_blendv_ps(sin, cos, steep), _mm256_blendv_ps(cos, sin, steep));
+                let ap = s(lens.aperture_radius);
+                let lx = mul(_mm256_blendv_ps(mul(r, cos), zero, centre), ap);
+                let ly = mul(_mm256_blendv_ps(mul(r, sin), zero, centre), ap);
+                let o = [lx, ly, zero];
+                (o, [sub(focus[0], o[0]), sub(focus[1], o[1]), sub(focus[2], o[2])])
+            }
+        };
         let m = &self.to_world;
         macro_rules! row {
-            ($c:ident) => {
-                _mm256_add_ps(
-                    _mm256_add_ps(_mm256_mul_ps(s(m.x_axis.$c), dx), _mm256_mul_ps(s(m.y_axis.$c), dy)),
-                    _mm256_mul_ps(s(m.z_axis.$c), s(1.0)),
-                )
+            ($v:expr, $c:ident) => {
+                add(add(mul(s(m.x_axis.$c), $v[0]), mul(s(m.y_axis.$c), $v[1])), mul(s(m.z_axis.$c), $v[2]))
             };
         }
-        let (vx, vy, vz) = (row!(x), row!(y), row!(z));
-        let len = _mm256_sqrt_ps(_mm256_add_ps(
-            _mm256_add_ps(_mm256_mul_ps(vx, vx), _mm256_mul_ps(vy, vy)),
-            _mm256_mul_ps(vz, vz),
-        ));
-        let per_depth = _mm256_div_ps(len, s(1.0));
+        let (vx, vy, vz) = (row!(d, x), row!(d, y), row!(d, z));
+        let len = _mm256_sqrt_ps(add(add(mul(vx, vx), mul(vy, vy)), mul(vz, vz)));
+        let per_depth = _mm256_div_ps(len, d[2]);
         let inv = _mm256_div_ps(s(1.0), len);
-        let mut l = [[0.0f32; 8]; 5];
+        let mut l = [[0.0f32; 8]; 8];
         for (k, v) in [
-            _mm256_mul_ps(vx, inv),
-            _mm256_mul_ps(vy, inv),
-            _mm256_mul_ps(vz, inv),
-            _mm256_mul_ps(s(self.near_clip), per_depth),
-            _mm256_mul_ps(s(self.far_clip), per_depth),
+            mul(vx, inv),
+            mul(vy, inv),
+            mul(vz, inv),
+            mul(s(self.near_clip), per_depth),
+            mul(s(self.far_clip), per_depth),
+            add(s(m.w_axis.x), row!(o, x)),
+            add(s(m.w_axis.y), row!(o, y)),
+            add(s(m.w_axis.z), row!(o, z)),
         ]
         .into_iter()
         .enumerate()
         {
             _mm256_storeu_ps(l[k].as_mut_ptr(), v);
         }
-        let o = self.to_world.transform_point3(Vec3::ZERO);
         for (j, r) in out[..n].iter_mut().enumerate() {
-            *r = Ray { o, d: Vec3::new(l[0][j], l[1][j], l[2][j]), tmin: l[3][j], tmax: l[4][j] };
+            *r = Ray {
+                o: Vec3::new(l[5][j], l[6][j], l[7][j]),
+                d: Vec3::new(l[0][j], l[1][j], l[2][j]),
+                tmin: l[3][j],
+                tmax: l[4][j],
+            };
         }
     }
 

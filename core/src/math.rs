@@ -199,7 +199,8 @@ pub fn offset_ray_origin(p: Vec3, p_err: Vec3, n: Vec3, w: Vec3) -> Vec3 {
 /// 16-byte pieces that the vector straddles, waits for both stores to complete instead of
 /// taking the value from them (a failed store forward): a third of the integrator's time on
 /// textured.xml. The empty `asm` hands the three numbers over in registers, so the loads stay
-/// apart.
+/// apart (as the compiler builds it today: nothing obliges it not to load 16 bytes and
+/// shuffle, so a timing regression there is the first thing to look for).
 #[inline(always)]
 fn lanes(v: Vec3) -> glam::Vec3A {
     #[cfg(target_arch = "x86_64")]

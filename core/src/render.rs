@@ -78,9 +78,9 @@ pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {
     render_region_in(scene, r, seed, true)
 }
 
-/// [`render_region`]; without `packets` every sample is traced alone (the reference that
-/// packets are tested against).
-fn render_region_in(scene: &Scene, r: &Region, seed: u64, packets: bool) -> (Accum, Stats) {
+/// [`render_region`]; without `together` every sample is traced alone, as before packets
+/// (the reference that packets are tested against).
+fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Accum, Stats) {
     let (ax, ay, aw, ah) = accum_rect(scene, r);
     let mut acc = Accum::new(ax, ay, aw, ah);
     let mut st = Stats::default();
@@ -130,11 +130,12 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, packets: bool) -> (Acc
                 }
             };
             // Where the pixel's leaves were all gathered, its camera rays go in packets of
-            // PACKET: their first hits are found together, then each path goes on alone.
-            let packets = packets && cands.len().is_some();
+            // PACKET: their first hits are found together (and the radiance of those that hit
+            // nothing), then each path goes on alone.
+            let gathered = cands.len().is_some();
             let mut i = r.s0;
             while i < r.s1 {
-                let want = if packets { (r.s1 - i).min(PACKET as u64) as usize } else { 1 };
+                let want = if gathered && together { (r.s1 - i).min(PACKET as u64) as usize } else { 1 };
                 let (mut streams, n) = seeds.streams::<PACKET>(i, want);
                 let mut film_uv = [(0.0f32, 0.0f32); PACKET];
                 let (mut pos, mut lens_u) = ([Vec2::ZERO; PACKET], [Vec2::ZERO; PACKET]);
@@ -165,7 +166,7 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, packets: bool) -> (Acc
                 // The radiance of the rays that hit nothing, looked up together (bit j: ray j's
                 // is in escaped[j]).
                 let (mut escaped, mut looked_up) = ([Rgb::ZERO; PACKET], 0u32);
-                if packets {
+                if gathered {
                     scene.intersect_among_packet(&rays[..n], &cands, &mut hits[..n]);
                     let (mut dirs, mut lanes, mut m) = ([Vec3::ZERO; PACKET], [0usize; PACKET], 0);
                     for j in (0..n).filter(|&j| hits[j].is_none()) {
@@ -173,7 +174,7 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, packets: bool) -> (Acc
                         m += 1;
                     }
                     let mut out = [Rgb::ZERO; PACKET];
-                    if m > 1 && path::li_escaped(scene, &dirs[..m], &mut out[..m], &mut st) {
+                    if together && m > 1 && path::li_escaped(scene, &dirs[..m], &mut out[..m], &mut st) {
                         for (&j, &l) in lanes[..m].iter().zip(&out[..m]) {
                             escaped[j] = l;
                             looked_up |= 1 << j;
@@ -181,7 +182,7 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, packets: bool) -> (Acc
                     }
                 }
                 for j in 0..n {
-                    let first = if packets { First::Found(hits[j]) } else { First::Trace };
+                    let first = if gathered { First::Found(hits[j]) } else { First::Trace };
                     let l = if looked_up >> j & 1 != 0 {
                         escaped[j]
                     } else {

@@ -81,9 +81,6 @@ impl PixelSeeds {
         }
     }
 
-    /// The stream of sample `index`. Sample indices past the sequence length continue in a
-    /// fresh, independently scrambled sequence (the seeds are hashed again when the block
-    /// changes).
     /// Up to `N` streams at once, of samples `index..index + n` (one to `want`, within one
     /// block of [`SEQUENCE_LEN`]), and `n`; streams past `n` repeat the last.
     #[inline]
@@ -98,6 +95,9 @@ impl PixelSeeds {
         (std::array::from_fn(|j| SampleStream { pixel, index: at + j.min(n - 1) as u32, set: 0 }), n)
     }
 
+    /// The stream of sample `index`. Sample indices past the sequence length continue in a
+    /// fresh, independently scrambled sequence (the seeds are hashed again when the block
+    /// changes).
     #[inline]
     pub fn stream(&mut self, index: u64) -> SampleStream<'_> {
         let block = (index / SEQUENCE_LEN as u64) as u32;

@@ -1537,12 +1537,15 @@ impl Accel {
         false
     }
 
+    /// (Crate-private, as are [`Accel::intersect_among`] and [`Accel::intersect_among_packet`]:
+    /// those read the gathered leaves unchecked, so they must come from this tree.)
+    ///
     /// Gathers into `out` the leaves whose boxes `bundle` may meet, nearest first by a lower
     /// bound of the distance along any of its rays; gives up (`out.complete` false) past
     /// [`MAX_CANDIDATES`] leaves or [`MAX_BUNDLE_NODES`] nodes, where tracing each ray through
     /// the tree is cheaper. Which leaves, and their order, depend only on the bundle (every
     /// kernel computes the same IEEE operations).
-    pub fn gather(&self, bundle: &Bundle, out: &mut Candidates) {
+    pub(crate) fn gather(&self, bundle: &Bundle, out: &mut Candidates) {
         // SAFETY: `self.kernel` is one that this CPU runs (`detect`, `set_kernel`).
         #[cfg(target_arch = "x86_64")]
         if self.kernel == Kernel::Avx2 {
@@ -1600,8 +1603,14 @@ impl Accel {
     /// The closest hit along `ray`, a ray of the bundle that `cands` was gathered for
     /// ([`Accel::gather`]): only its leaves are tested, nearest first, until the next one
     /// lies past the closest hit. The same hit as [`Accel::intersect`] (up to which of two
-    /// primitives at exactly the same distance is reported).
-    pub fn intersect_among(&self, shapes: &[Shape], ray: &Ray, cands: &Candidates) -> Option<Interaction> {
+    /// primitives at exactly the same distance is reported). The packets' reference in tests.
+    #[cfg(test)]
+    pub(crate) fn intersect_among(
+        &self,
+        shapes: &[Shape],
+        ray: &Ray,
+        cands: &Candidates,
+    ) -> Option<Interaction> {
         let hit = self.among_hit(shapes, ray, cands)?;
         Some(self.hit_interaction(shapes, ray, &hit))
     }
@@ -1686,7 +1695,7 @@ impl Accel {
     ///
     /// # Panics
     /// If `rays` is longer than [`PACKET`] or `out` is not as long as `rays`.
-    pub fn intersect_among_packet(
+    pub(crate) fn intersect_among_packet(
         &self,
         shapes: &[Shape],
         rays: &[Ray],

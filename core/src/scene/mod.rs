@@ -190,9 +190,9 @@ impl Scene {
     }
 
     /// [`Scene::intersect`] for a ray of the bundle that `cands` was gathered for
-    /// ([`crate::geometry::Accel::gather`]).
-    #[inline]
-    pub fn intersect_among(
+    /// ([`crate::geometry::Accel::gather`]). The packets' reference in tests.
+    #[cfg(test)]
+    pub(crate) fn intersect_among(
         &self,
         ray: &Ray,
         cands: &crate::geometry::bvh::Candidates,
@@ -202,7 +202,7 @@ impl Scene {
 
     /// [`Scene::intersect_among`] for up to [`crate::geometry::bvh::PACKET`] rays of one
     /// bundle at once, into `out` (as long as `rays`).
-    pub fn intersect_among_packet(
+    pub(crate) fn intersect_among_packet(
         &self,
         rays: &[Ray],
         cands: &crate::geometry::bvh::Candidates,
