@@ -215,7 +215,7 @@ impl Kernel {
 
     pub fn name(self) -> &'static str {
         match self {
-            Kernel::Avx2 => "8-wide BVH, AVX2+FMA, a leaf's triangles in 4 SSE lanes",
+            Kernel::Avx2 => "8-wide BVH, AVX2+FMA, a leaf's triangles in 4 SSE lanes, a pixel's camera rays 8 at a time",
             Kernel::Sse => "8-wide BVH, SSE, a leaf's triangles in 4 SSE lanes",
             Kernel::Scalar => "8-wide BVH, scalar",
         }
