@@ -215,7 +215,9 @@ impl Kernel {
 
     pub fn name(self) -> &'static str {
         match self {
-            Kernel::Avx2 => "8-wide BVH, AVX2+FMA, a leaf's triangles in 4 SSE lanes, a pixel's camera rays 8 at a time",
+            Kernel::Avx2 => {
+                "8-wide BVH, AVX2+FMA, a leaf's triangles in 4 SSE lanes, a pixel's camera rays 8 at a time"
+            }
             Kernel::Sse => "8-wide BVH, SSE, a leaf's triangles in 4 SSE lanes",
             Kernel::Scalar => "8-wide BVH, scalar",
         }
@@ -2050,14 +2052,10 @@ mod tests {
         }
     }
 
-    /// Leaves of triangles tested together (the x86 kernels' quads) find bit for bit what
-    /// testing them one at a time (the scalar kernel) finds: distance, triangle, barycentrics
-    /// and point, and the same occlusion answer. Rays straight down onto a grid's vertices and
-    /// edges (edge functions exactly 0: the quad hands the leaf to the one-at-a-time test),
-    /// coincident triangles (ties: the first in leaf order wins), rays from the surface itself
-    /// and random rays, some ending short, through a soup with balls among its triangles.
-    #[test]
-    fn triangle_quads_match_one_at_a_time() {
+    /// An 8 x 8 grid of unit squares at z = 0 (every third square's first triangle doubled),
+    /// a soup of 600 triangles (seed `soup_seed`) and 150 small balls among them (seed
+    /// `ball_seed`): leaves that mix balls and triangles.
+    fn grid_soup_and_balls(soup_seed: u64, ball_seed: u64) -> Vec<Shape> {
         let n = 8u32;
         let mut grid = Mesh::default();
         for y in 0..=n {
@@ -2075,24 +2073,22 @@ mod tests {
                 }
             }
         }
-        let mut shapes = soup(600, 21);
+        let mut shapes = soup(600, soup_seed);
         shapes.push(shape(Geometry::Mesh(grid), "grid"));
-        // Small balls among the soup's triangles: leaves that mix them (one at a time).
-        let mut s = 17;
+        let mut s = ball_seed;
         for k in 0..150 {
             let center = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 10.0;
             let ball = crate::geometry::Sphere { center, radius: 0.15, rot: glam::Mat3::IDENTITY };
             shapes.push(shape(Geometry::Sphere(ball), &format!("ball {k}")));
         }
-        let accel_of = |kernel| {
-            let mut a = Accel::build(&shapes);
-            a.set_kernel(kernel);
-            a
-        };
-        let kernels = Kernel::available();
-        let accels: Vec<Accel> = kernels.iter().map(|&k| accel_of(k)).collect();
-        assert_eq!(kernels.last(), Some(&Kernel::Scalar), "the reference is last");
-        assert!(accels[0].nodes.len() > 1 && accels[0].tris.index.len() > 100);
+        shapes
+    }
+
+    /// Rays down and up onto [`grid_soup_and_balls`]'s grid every quarter unit (its vertices
+    /// and edges among them) and slanted ones, then 4,000 random rays (seed `seed`), a third
+    /// of them ending among the triangles.
+    fn grid_rays(seed: u64) -> Vec<Ray> {
+        let n = 8;
         let mut rays = Vec::new();
         for k in 0..=4 * n {
             for j in 0..=4 * n {
@@ -2102,7 +2098,7 @@ mod tests {
                 rays.push(Ray::new(Vec3::new(x + 0.3, y - 0.2, 2.0), Vec3::new(-0.3, 0.2, -2.0).normalize()));
             }
         }
-        let mut s = 5;
+        let mut s = seed;
         for k in 0..4000 {
             let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 14.0 - 2.0;
             let d = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5;
@@ -2112,6 +2108,28 @@ mod tests {
             }
             rays.push(ray);
         }
+        rays
+    }
+
+    /// Leaves of triangles tested together (the x86 kernels' quads) find bit for bit what
+    /// testing them one at a time (the scalar kernel) finds: distance, triangle, barycentrics
+    /// and point, and the same occlusion answer. Rays straight down onto a grid's vertices and
+    /// edges (edge functions exactly 0: the quad hands the leaf to the one-at-a-time test),
+    /// coincident triangles (ties: the first in leaf order wins), rays from the surface itself
+    /// and random rays, some ending short, through a soup with balls among its triangles.
+    #[test]
+    fn triangle_quads_match_one_at_a_time() {
+        let shapes = grid_soup_and_balls(21, 17);
+        let accel_of = |kernel| {
+            let mut a = Accel::build(&shapes);
+            a.set_kernel(kernel);
+            a
+        };
+        let kernels = Kernel::available();
+        let accels: Vec<Accel> = kernels.iter().map(|&k| accel_of(k)).collect();
+        assert_eq!(kernels.last(), Some(&Kernel::Scalar), "the reference is last");
+        assert!(accels[0].nodes.len() > 1 && accels[0].tris.index.len() > 100);
+        let rays = grid_rays(5);
         let (mut hits, mut on_edges) = (0, 0);
         for (r, ray) in rays.iter().enumerate() {
             let key = |a: &Accel| {
@@ -2152,50 +2170,8 @@ mod tests {
     /// triangles, and packets of one to eight rays.
     #[test]
     fn packets_find_what_each_ray_finds() {
-        let n = 8u32;
-        let mut grid = Mesh::default();
-        for y in 0..=n {
-            for x in 0..=n {
-                grid.positions.push(Vec3::new(x as f32, y as f32, 0.0));
-            }
-        }
-        for y in 0..n {
-            for x in 0..n {
-                let i = y * (n + 1) + x;
-                grid.tris.push([i, i + 1, i + n + 2]);
-                grid.tris.push([i, i + n + 2, i + n + 1]);
-                if (x + y) % 3 == 0 {
-                    grid.tris.push([i, i + 1, i + n + 2]); // a coincident copy
-                }
-            }
-        }
-        let mut shapes = soup(600, 23);
-        shapes.push(shape(Geometry::Mesh(grid), "grid"));
-        let mut s = 19;
-        for k in 0..150 {
-            let center = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 10.0;
-            let ball = crate::geometry::Sphere { center, radius: 0.15, rot: glam::Mat3::IDENTITY };
-            shapes.push(shape(Geometry::Sphere(ball), &format!("ball {k}")));
-        }
-        let mut rays = Vec::new();
-        for k in 0..=4 * n {
-            for j in 0..=4 * n {
-                let (x, y) = (k as f32 * 0.25, j as f32 * 0.25);
-                rays.push(Ray::new(Vec3::new(x, y, 3.0), Vec3::NEG_Z));
-                rays.push(Ray::new(Vec3::new(x, y, -3.0), Vec3::Z));
-                rays.push(Ray::new(Vec3::new(x + 0.3, y - 0.2, 2.0), Vec3::new(-0.3, 0.2, -2.0).normalize()));
-            }
-        }
-        let mut s = 7;
-        for k in 0..4000 {
-            let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 14.0 - 2.0;
-            let d = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5;
-            let mut ray = Ray::new(o, d.normalize());
-            if k % 3 == 0 {
-                ray.tmax = 4.0 + xorshift(&mut s) * 4.0; // ends among the triangles
-            }
-            rays.push(ray);
-        }
+        let shapes = grid_soup_and_balls(23, 19);
+        let rays = grid_rays(7);
         // In the given order most packets mix the axes; sorted by them, most share them.
         let axes = |r: &Ray| {
             let p = RayPre::new(r.d);
