@@ -194,15 +194,17 @@ pub fn offset_ray_origin(p: Vec3, p_err: Vec3, n: Vec3, w: Vec3) -> Vec3 {
     round_away(p + offset, offset)
 }
 
-/// `v` in a register's lanes, read a coordinate at a time. The compiler would otherwise read a
-/// hit record's vector with one 16-byte load, which, where the record was just copied in
-/// 16-byte pieces that the vector straddles, waits for both stores to complete instead of
-/// taking the value from them (a failed store forward): a third of the integrator's time on
-/// textured.xml. The empty `asm` hands the three numbers over in registers, so the loads stay
-/// apart (as the compiler builds it today: nothing obliges it not to load 16 bytes and
-/// shuffle, so a timing regression there is the first thing to look for).
+/// `v` read a coordinate at a time. The compiler would otherwise read a vector that has just
+/// been stored in pieces with one wide load across the pieces (a hit record's 16-byte `p`
+/// across two 16-byte stores of the record's copy; a sample's 12-byte radiance with an
+/// 8-byte load at its second coordinate): such a load cannot take its value from the stores
+/// in flight and waits for them to complete (a failed store forward), which cost a third of
+/// the integrator's time on textured.xml and a fifth of `render_region`'s on envmap.xml. The
+/// empty `asm` hands the three numbers over in registers, so the loads stay apart (as the
+/// compiler builds it today: nothing obliges it not to load wide and shuffle, so a timing
+/// regression there is the first thing to look for).
 #[inline(always)]
-fn lanes(v: Vec3) -> glam::Vec3A {
+pub fn apart(v: Vec3) -> Vec3 {
     #[cfg(target_arch = "x86_64")]
     {
         let (mut x, mut y, mut z) = (v.x, v.y, v.z);
@@ -211,10 +213,16 @@ fn lanes(v: Vec3) -> glam::Vec3A {
             std::arch::asm!("/* {0} {1} {2} */", inout(xmm_reg) x, inout(xmm_reg) y, inout(xmm_reg) z,
                 options(pure, nomem, nostack, preserves_flags));
         }
-        glam::Vec3A::new(x, y, z)
+        Vec3::new(x, y, z)
     }
     #[cfg(not(target_arch = "x86_64"))]
-    glam::Vec3A::from(v)
+    v
+}
+
+/// [`apart`], in a register's lanes.
+#[inline(always)]
+fn lanes(v: Vec3) -> glam::Vec3A {
+    glam::Vec3A::from(apart(v))
 }
 
 /// Each lane of `po` rounded one step up where `off` is positive ([`next_float_up`]) and one

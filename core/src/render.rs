@@ -189,7 +189,8 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
                         path::li(scene, rays[j], diffs[j].as_ref(), first, &mut streams[j], &mut st)
                     };
                     st.samples += 1;
-                    add(l, film_uv[j].0, film_uv[j].1);
+                    // (Read a coordinate at a time: either branch leaves `l` in memory in pieces.)
+                    add(crate::math::apart(l), film_uv[j].0, film_uv[j].1);
                 }
                 i += n as u64;
             }
