@@ -113,60 +113,9 @@ impl Camera {
             Some(lens) => {
                 let f = s(lens.focus_distance);
                 let focus = [mul(film[0], f), mul(film[1], f), mul(film[2], f)];
-                let x = sub(mul(s(2.0), lane!(lens_u.x)), s(1.0));
-                let y = sub(mul(s(2.0), lane!(lens_u.y)), s(1.0));
-                let centre =
-                    _mm256_and_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(x, zero), _mm256_cmp_ps::<_CMP_EQ_OQ>(y, zero));
-                let abs = |v: __m256| _mm256_andnot_ps(neg, v);
-                let steep = _mm256_cmp_ps::<_CMP_LE_OQ>(abs(x), abs(y));
-                let (num, r) = (_mm256_blendv_ps(y, x, steep), _mm256_blendv_ps(x, y, steep));
-                let a = mul(s(std::f32::consts::FRAC_PI_4), _mm256_div_ps(num, r));
-                let z = mul(a, a);
-                let sin = mul(
-                    a,
-                    add(
-                        s(1.0),
-                        mul(
-                            z,
-                            add(
-                                s(-1.0 / 6.0),
-                                mul(
-                                    z,
-                                    add(
-                                        s(1.0 / 120.0),
-                                        mul(z, add(s(-1.0 / 5040.0), mul(z, s(1.0 / 362_880.0)))),
-                                    ),
-                                ),
-                            ),
-                        ),
-                    ),
-                );
-                let cos = add(
-                    s(1.0),
-                    mul(
-                        z,
-                        add(
-                            s(-0.5),
-                            mul(
-                                z,
-                                add(
-                                    s(1.0 / 24.0),
-                                    mul(
-                                        z,
-                                        add(
-                                            s(-1.0 / 720.0),
-                                            mul(z, add(s(1.0 / 40_320.0), mul(z, s(-1.0 / 3_628_800.0)))),
-                                        ),
-                                    ),
-                                ),
-                            ),
-                        ),
-                    ),
-                );
-                let (sin, cos) = (_mm256_blendv_ps(sin, cos, steep), _mm256_blendv_ps(cos, sin, steep));
+                let [dx, dy] = crate::simd::disk_concentric_avx(lane!(lens_u.x), lane!(lens_u.y));
                 let ap = s(lens.aperture_radius);
-                let lx = mul(_mm256_blendv_ps(mul(r, cos), zero, centre), ap);
-                let ly = mul(_mm256_blendv_ps(mul(r, sin), zero, centre), ap);
+                let (lx, ly) = (mul(dx, ap), mul(dy, ap));
                 let o = [lx, ly, zero];
                 (o, [sub(focus[0], o[0]), sub(focus[1], o[1]), sub(focus[2], o[2])])
             }

@@ -100,11 +100,8 @@ impl PixelSeeds {
     /// changes).
     #[inline]
     pub fn stream(&mut self, index: u64) -> SampleStream<'_> {
-        let block = (index / SEQUENCE_LEN as u64) as u32;
-        if block != self.block {
-            self.set_block(block);
-        }
-        SampleStream { pixel: self, index: (index % SEQUENCE_LEN as u64) as u32, set: 0 }
+        let ([s], _) = self.streams::<1>(index, 1);
+        s
     }
 }
 

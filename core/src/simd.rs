@@ -364,6 +364,42 @@ pub unsafe fn atan2_avx(y: __m256, x: __m256) -> __m256 {
     _mm256_or_ps(_mm256_andnot_ps(sign, r), _mm256_and_ps(sign, y))
 }
 
+/// [`crate::math::square_to_uniform_disk_concentric`] of eight points (`ux`, `uy`) of the unit
+/// square (AVX): the same operations in the same order (its sine and cosine are
+/// `math::sin_cos_octant`'s polynomials), so each lane is the scalar map's bit for bit.
+///
+/// # Safety
+/// The CPU must run AVX.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub unsafe fn disk_concentric_avx(ux: __m256, uy: __m256) -> [__m256; 2] {
+    use _mm256_add_ps as add;
+    use _mm256_mul_ps as mul;
+    use _mm256_set1_ps as s;
+    use _mm256_sub_ps as sub;
+    let zero = _mm256_setzero_ps();
+    let x = sub(mul(s(2.0), ux), s(1.0));
+    let y = sub(mul(s(2.0), uy), s(1.0));
+    let centre = _mm256_and_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(x, zero), _mm256_cmp_ps::<_CMP_EQ_OQ>(y, zero));
+    let sign = s(-0.0);
+    let steep = _mm256_cmp_ps::<_CMP_LE_OQ>(_mm256_andnot_ps(sign, x), _mm256_andnot_ps(sign, y));
+    let (num, r) = (_mm256_blendv_ps(y, x, steep), _mm256_blendv_ps(x, y, steep));
+    let a = mul(s(std::f32::consts::FRAC_PI_4), _mm256_div_ps(num, r));
+    let z = mul(a, a);
+    let sin = add(s(-1.0 / 5040.0), mul(z, s(1.0 / 362_880.0)));
+    let sin = add(s(1.0 / 120.0), mul(z, sin));
+    let sin = add(s(-1.0 / 6.0), mul(z, sin));
+    let sin = mul(a, add(s(1.0), mul(z, sin)));
+    let cos = add(s(1.0 / 40_320.0), mul(z, s(-1.0 / 3_628_800.0)));
+    let cos = add(s(-1.0 / 720.0), mul(z, cos));
+    let cos = add(s(1.0 / 24.0), mul(z, cos));
+    let cos = add(s(-0.5), mul(z, cos));
+    let cos = add(s(1.0), mul(z, cos));
+    let (sin, cos) = (_mm256_blendv_ps(sin, cos, steep), _mm256_blendv_ps(cos, sin, steep));
+    // The centre maps to (0, 0), as the scalar map returns early there.
+    [_mm256_blendv_ps(mul(r, cos), zero, centre), _mm256_blendv_ps(mul(r, sin), zero, centre)]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -474,6 +510,44 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The 8-lane concentric map is the scalar one bit for bit: a 33 x 33 grid (its centre,
+    /// both diagonals, where the map switches sides, and the square's edges) and random points.
+    #[test]
+    fn disk_concentric_lanes_are_the_scalar_map() {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx") {
+            let mut pts: Vec<(f32, f32)> =
+                (0..=32).flat_map(|i| (0..=32).map(move |j| (i as f32 / 32.0, j as f32 / 32.0))).collect();
+            let mut rng = crate::testing::Pcg::new(13);
+            pts.extend((0..20_000).map(|_| (rng.next_f32(), rng.next_f32())));
+            for c in pts.chunks(8) {
+                let lane = |k: usize| c.get(k).copied().unwrap_or((0.5, 0.5));
+                let (u, v): ([f32; 8], [f32; 8]) =
+                    (std::array::from_fn(|k| lane(k).0), std::array::from_fn(|k| lane(k).1));
+                let (mut x, mut y) = ([0.0f32; 8], [0.0f32; 8]);
+                // SAFETY: the CPU runs AVX (checked above); the arrays hold eight floats.
+                unsafe { avx_disk_into(&u, &v, &mut x, &mut y) };
+                for k in 0..c.len() {
+                    let want = crate::math::square_to_uniform_disk_concentric(glam::Vec2::new(u[k], v[k]));
+                    assert_eq!(
+                        (x[k].to_bits(), y[k].to_bits()),
+                        (want.x.to_bits(), want.y.to_bits()),
+                        "{:?}",
+                        c[k]
+                    );
+                }
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    unsafe fn avx_disk_into(u: &[f32; 8], v: &[f32; 8], x: &mut [f32; 8], y: &mut [f32; 8]) {
+        let [dx, dy] = super::disk_concentric_avx(_mm256_loadu_ps(u.as_ptr()), _mm256_loadu_ps(v.as_ptr()));
+        _mm256_storeu_ps(x.as_mut_ptr(), dx);
+        _mm256_storeu_ps(y.as_mut_ptr(), dy);
     }
 
     #[cfg(target_arch = "x86_64")]
