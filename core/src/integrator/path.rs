@@ -12,7 +12,7 @@ use crate::bsdf::Bsdf;
 use crate::geometry::bvh::Hit;
 use crate::geometry::{Ray, RayDifferentials};
 use crate::light::Light;
-use crate::math::{mis_power, Rgb};
+use crate::math::{apart, mis_power, Rgb};
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
 use crate::texture::Texture;
@@ -172,12 +172,14 @@ pub fn li(
             let spare = || choices.get(s)[3];
             if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare) {
                 if ls.pdf > 0.0 && !ls.is_black() {
-                    let wi = it.frame.to_local(ls.wi);
+                    // (Read a coordinate at a time: `math::apart`.)
+                    let ls_wi = apart(ls.wi);
+                    let wi = it.frame.to_local(ls_wi);
                     let (f, bsdf_pdf) = bsdf.eval_and_pdf(tc, wo, wi);
                     if f != Rgb::ZERO {
                         let shadow = match ls.target {
-                            Some((t, dist)) => it.spawn_ray_to(ls.wi, t, dist),
-                            None => it.spawn_ray(ls.wi),
+                            Some((t, dist)) => it.spawn_ray_to(ls_wi, apart(t), dist),
+                            None => it.spawn_ray(ls_wi),
                         };
                         st.shadow_rays += 1;
                         if !scene.occluded(&shadow) {
@@ -200,8 +202,9 @@ pub fn li(
         let Some(bs) = bsdf.sample(tc, wo, bsel, Vec2::new(bu, bv)) else {
             break;
         };
-        let wi_world = it.frame.to_world(bs.wi);
-        beta *= bs.weight;
+        // (The sample's vectors read a coordinate at a time: `math::apart`.)
+        let wi_world = it.frame.to_world(apart(bs.wi));
+        beta *= apart(bs.weight);
         eta *= bs.eta;
         prev_p = it.p;
         prev_pdf = bs.pdf;
