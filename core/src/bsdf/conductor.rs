@@ -33,27 +33,20 @@ pub struct Conductor {
 }
 
 impl Conductor {
+    /// The value (f |cos|) and the pdf of `wi`, computed together: they share the half
+    /// vector, the roughness lookup, D and G1(wo).
     #[inline]
-    pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
-        let Some(r) = &self.rough else { return Rgb::ZERO };
+    pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
+        let Some(r) = &self.rough else { return (Rgb::ZERO, 0.0) };
         if wo.z <= 0.0 || wi.z <= 0.0 {
-            return Rgb::ZERO;
+            return (Rgb::ZERO, 0.0);
         }
         let m = (wo + wi).normalize();
         let mf = r.at(uv);
+        let (d, g1o) = (mf.d(m), mf.g1(wo, m));
         let f = fresnel_conductor(wo.dot(m), self.eta, self.k);
-        let v = mf.d(m) * mf.g(wo, wi, m) / (4.0 * wo.z);
-        self.specular_reflectance.eval(uv) * f * v
-    }
-
-    #[inline]
-    pub fn pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
-        let Some(r) = &self.rough else { return 0.0 };
-        if wo.z <= 0.0 || wi.z <= 0.0 {
-            return 0.0;
-        }
-        let m = (wo + wi).normalize();
-        r.at(uv).pdf(wo, m) / (4.0 * wo.dot(m))
+        let v = d * (g1o * mf.g1(wi, m)) / (4.0 * wo.z);
+        (self.specular_reflectance.eval(uv) * f * v, Microfacet::pdf_of(wo, m, d, g1o) / (4.0 * wo.dot(m)))
     }
 
     #[inline]
@@ -79,11 +72,11 @@ impl Conductor {
         }
         // pdf and value from wi, exactly as `pdf` and `eval` compute them, so that MIS sees
         // the same numbers whichever strategy produced the direction.
-        let pdf = self.pdf(uv, wo, wi);
+        let (value, pdf) = self.eval_pdf(uv, wo, wi);
         if !(pdf > 0.0) {
             return None;
         }
-        let weight = self.eval(uv, wo, wi) / pdf;
+        let weight = value / pdf;
         weight.is_finite().then_some(BsdfSample { wi, weight, pdf, delta: false, eta: 1.0 })
     }
 }

@@ -11,7 +11,7 @@
 use glam::{Vec2, Vec3};
 
 use super::conductor::Roughness;
-use super::microfacet::{fresnel_dielectric, reflect, refract};
+use super::microfacet::{fresnel_dielectric, reflect, refract, Microfacet};
 use super::BsdfSample;
 use crate::math::Rgb;
 use crate::texture::{TexCoord, Texture};
@@ -75,42 +75,30 @@ impl Dielectric {
         Some((m, reflect))
     }
 
-    pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
-        let Some(r) = &self.rough else { return Rgb::ZERO };
+    /// The value (f |cos|) and the pdf of `wi`, computed together: they share the half
+    /// vector, the Fresnel term, the roughness lookup, D and G1(wo).
+    pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
+        let Some(r) = &self.rough else { return (Rgb::ZERO, 0.0) };
         if wo.z == 0.0 {
-            return Rgb::ZERO;
+            return (Rgb::ZERO, 0.0);
         }
         let (eta, s) = self.side(wo);
         let (wo, wi) = (flip(wo, s), flip(wi, s));
-        let Some((m, is_reflect)) = Self::half_vector(wo, wi, eta) else { return Rgb::ZERO };
+        let Some((m, is_reflect)) = Self::half_vector(wo, wi, eta) else { return (Rgb::ZERO, 0.0) };
         let mf = r.at(uv);
         let (f, _) = fresnel_dielectric(wo.dot(m), eta);
-        let dg = mf.d(m) * mf.g(wo, wi, m);
+        let (d, g1o) = (mf.d(m), mf.g1(wo, m));
+        let dg = d * (g1o * mf.g1(wi, m));
+        // (wo.z > 0 in the flipped frame: the microfacet pdf's own test is passed.)
+        let pdf_m = Microfacet::pdf_of(wo, m, d, g1o);
         if is_reflect {
-            self.specular_reflectance.eval(uv) * (f * dg / (4.0 * wo.z))
+            (self.specular_reflectance.eval(uv) * (f * dg / (4.0 * wo.z)), f * pdf_m / (4.0 * wo.dot(m)))
         } else {
             let denom = wo.dot(m) + eta * wi.dot(m);
             let v = (1.0 - f) * dg * (wo.dot(m) * wi.dot(m)).abs() / (wo.z * denom * denom);
             // Radiance mode: eta^2 of the Jacobian cancels the 1 / eta^2 radiance scale.
-            self.specular_transmittance.eval(uv) * v.abs()
-        }
-    }
-
-    pub fn pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
-        let Some(r) = &self.rough else { return 0.0 };
-        if wo.z == 0.0 {
-            return 0.0;
-        }
-        let (eta, s) = self.side(wo);
-        let (wo, wi) = (flip(wo, s), flip(wi, s));
-        let Some((m, is_reflect)) = Self::half_vector(wo, wi, eta) else { return 0.0 };
-        let (f, _) = fresnel_dielectric(wo.dot(m), eta);
-        let pdf_m = r.at(uv).pdf(wo, m);
-        if is_reflect {
-            f * pdf_m / (4.0 * wo.dot(m))
-        } else {
-            let denom = wo.dot(m) + eta * wi.dot(m);
-            (1.0 - f) * pdf_m * eta * eta * wi.dot(m).abs() / (denom * denom)
+            let pdf = (1.0 - f) * pdf_m * eta * eta * wi.dot(m).abs() / (denom * denom);
+            (self.specular_transmittance.eval(uv) * v.abs(), pdf)
         }
     }
 
@@ -163,11 +151,11 @@ impl Dielectric {
             return None; // the sampled microfacet sends the ray to the wrong side
         }
         let wi = flip(wi_f, s);
-        let pdf = self.pdf(uv, wo, wi);
+        let (value, pdf) = self.eval_pdf(uv, wo, wi);
         if !(pdf > 0.0) {
             return None;
         }
-        let weight = self.eval(uv, wo, wi) / pdf;
+        let weight = value / pdf;
         weight.is_finite().then_some(BsdfSample {
             wi,
             weight,

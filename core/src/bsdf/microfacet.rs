@@ -102,7 +102,14 @@ impl Microfacet {
         if wo.z <= 0.0 {
             return 0.0;
         }
-        self.g1(wo, m) * wo.dot(m).max(0.0) * self.d(m) / wo.z
+        Self::pdf_of(wo, m, self.d(m), self.g1(wo, m))
+    }
+
+    /// [`Microfacet::pdf`] (for wo.z > 0) from `d` = D(m) and `g1o` = G1(wo, m), which the
+    /// BSDF's value needs too: computed once for both.
+    #[inline]
+    pub fn pdf_of(wo: Vec3, m: Vec3, d: f32, g1o: f32) -> f32 {
+        g1o * wo.dot(m).max(0.0) * d / wo.z
     }
 
     /// Heitz 2018: stretch the view direction to the unit-roughness configuration, sample the

@@ -168,56 +168,37 @@ impl Bsdf {
         }
     }
 
+    /// The value (f |cos theta_i|) for `wi` given `wo`: [`Bsdf::eval_pdf`]'s first half.
     #[inline]
     pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
-        match self {
-            Bsdf::Diffuse { reflectance } => diffuse::eval(reflectance, uv, wo, wi),
-            Bsdf::TwoSided { front, back } => {
-                if wo.z >= 0.0 {
-                    front.eval(uv, wo, wi)
-                } else {
-                    back.eval(uv, flip(wo), flip(wi))
-                }
-            }
-            Bsdf::Conductor(c) => c.eval(uv, wo, wi),
-            Bsdf::Dielectric(d) => d.eval(uv, wo, wi),
-            Bsdf::Plastic(p) => p.eval(uv, wo, wi),
-            Bsdf::Hair(h) => h.eval(wo, wi, hair::Hair::h_from(wo)),
-        }
+        self.eval_pdf(uv, wo, wi).0
     }
 
+    /// The solid-angle density with which [`Bsdf::sample`] picks `wi` given `wo`:
+    /// [`Bsdf::eval_pdf`]'s second half.
     #[inline]
     pub fn pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
-        match self {
-            Bsdf::Diffuse { .. } => diffuse::pdf(wo, wi),
-            Bsdf::TwoSided { front, back } => {
-                if wo.z >= 0.0 {
-                    front.pdf(uv, wo, wi)
-                } else {
-                    back.pdf(uv, flip(wo), flip(wi))
-                }
-            }
-            Bsdf::Conductor(c) => c.pdf(uv, wo, wi),
-            Bsdf::Dielectric(d) => d.pdf(uv, wo, wi),
-            Bsdf::Plastic(p) => p.pdf(uv, wo, wi),
-            Bsdf::Hair(h) => h.pdf(wo, wi, hair::Hair::h_from(wo)),
-        }
+        self.eval_pdf(uv, wo, wi).1
     }
 
-    /// `eval`, and `pdf` too where computing it with the value costs little more than the
-    /// value alone (hair, whose terms are shared; diffuse, whose pdf is one product); otherwise
-    /// `None`, and `pdf` is called only if it is needed.
+    /// The value and the pdf of `wi` together: light sampling needs both (the pdf for MIS),
+    /// and each BSDF computes the terms they share (half vector, Fresnel, D, G1, texture
+    /// lookups) once.
     #[inline]
-    pub fn eval_and_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, Option<f32>) {
+    pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
         match self {
-            Bsdf::Diffuse { reflectance } => {
-                (diffuse::eval(reflectance, uv, wo, wi), Some(diffuse::pdf(wo, wi)))
+            Bsdf::Diffuse { reflectance } => (diffuse::eval(reflectance, uv, wo, wi), diffuse::pdf(wo, wi)),
+            Bsdf::TwoSided { front, back } => {
+                if wo.z >= 0.0 {
+                    front.eval_pdf(uv, wo, wi)
+                } else {
+                    back.eval_pdf(uv, flip(wo), flip(wi))
+                }
             }
-            Bsdf::Hair(h) => {
-                let (f, pdf) = h.eval_pdf(wo, wi, hair::Hair::h_from(wo));
-                (f, Some(pdf))
-            }
-            _ => (self.eval(uv, wo, wi), None),
+            Bsdf::Conductor(c) => c.eval_pdf(uv, wo, wi),
+            Bsdf::Dielectric(d) => d.eval_pdf(uv, wo, wi),
+            Bsdf::Plastic(p) => p.eval_pdf(uv, wo, wi),
+            Bsdf::Hair(h) => h.eval_pdf(wo, wi, hair::Hair::h_from(wo)),
         }
     }
 

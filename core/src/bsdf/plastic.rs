@@ -9,7 +9,7 @@
 use glam::{Vec2, Vec3};
 
 use super::conductor::Roughness;
-use super::microfacet::{fresnel_dielectric, reflect, refract};
+use super::microfacet::{fresnel_dielectric, reflect, refract, Microfacet};
 use super::BsdfSample;
 use crate::math::{square_to_cosine_hemisphere, Rgb, INV_PI};
 use crate::texture::{TexCoord, Texture};
@@ -128,8 +128,9 @@ impl Plastic {
         let m = (wo + wi).normalize();
         let mf = r.roughness.at(uv);
         let f = fresnel_dielectric(wo.dot(m), self.eta).0;
-        let value = f * mf.d(m) * mf.g(wo, wi, m) / (4.0 * wo.z);
-        (self.specular_reflectance.eval(uv) * value, mf.pdf(wo, m) / (4.0 * wo.dot(m)))
+        let (d, g1o) = (mf.d(m), mf.g1(wo, m));
+        let value = f * d * (g1o * mf.g1(wi, m)) / (4.0 * wo.z);
+        (self.specular_reflectance.eval(uv) * value, Microfacet::pdf_of(wo, m, d, g1o) / (4.0 * wo.dot(m)))
     }
 
     #[inline]
@@ -140,20 +141,15 @@ impl Plastic {
         r * ((1.0 - f_o) * (1.0 - f_i) * INV_PI * wi.z / (self.eta * self.eta))
     }
 
-    pub fn eval(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> Rgb {
+    /// The value (f |cos|) and the pdf of `wi`, computed together: they share the coating's
+    /// transmittance towards `wo` and the specular lobe.
+    pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
         if wo.z <= 0.0 || wi.z <= 0.0 {
-            return Rgb::ZERO;
+            return (Rgb::ZERO, 0.0);
         }
-        let f_o = 1.0 - self.transmittance(wo.z);
-        self.diffuse_value(uv, wi, f_o) + self.specular(uv, wo, wi).0
-    }
-
-    pub fn pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> f32 {
-        if wo.z <= 0.0 || wi.z <= 0.0 {
-            return 0.0;
-        }
-        let (_, p_spec) = self.probs(wo.z);
-        (1.0 - p_spec) * wi.z * INV_PI + p_spec * self.specular(uv, wo, wi).1
+        let (f_o, p_spec) = self.probs(wo.z);
+        let (spec, spec_pdf) = self.specular(uv, wo, wi);
+        (self.diffuse_value(uv, wi, f_o) + spec, (1.0 - p_spec) * wi.z * INV_PI + p_spec * spec_pdf)
     }
 
     pub fn sample(&self, uv: TexCoord, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
@@ -171,11 +167,11 @@ impl Plastic {
             if wi.z <= 0.0 {
                 return None;
             }
-            let pdf = self.pdf(uv, wo, wi);
+            let (value, pdf) = self.eval_pdf(uv, wo, wi);
             if !(pdf > 0.0) {
                 return None;
             }
-            let weight = self.eval(uv, wo, wi) / pdf;
+            let weight = value / pdf;
             return weight.is_finite().then_some(BsdfSample { wi, weight, pdf, delta: false, eta: 1.0 });
         }
         if u1 < p_spec {

@@ -175,7 +175,7 @@ pub fn li(
                     // (Read a coordinate at a time: `math::apart`.)
                     let ls_wi = apart(ls.wi);
                     let wi = it.frame.to_local(ls_wi);
-                    let (f, bsdf_pdf) = bsdf.eval_and_pdf(tc, wo, wi);
+                    let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wo, wi);
                     if f != Rgb::ZERO {
                         let shadow = match ls.target {
                             Some((t, dist)) => it.spawn_ray_to(ls_wi, apart(t), dist),
@@ -184,11 +184,7 @@ pub fn li(
                         st.shadow_rays += 1;
                         if !scene.occluded(&shadow) {
                             let light_pdf = ls.pdf * sel_pdf;
-                            let w = if ls.delta || !plan.mis {
-                                1.0
-                            } else {
-                                mis_power(light_pdf, bsdf_pdf.unwrap_or_else(|| bsdf.pdf(tc, wo, wi)))
-                            };
+                            let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
                             l += beta * f * ls.li(light) * (w / light_pdf);
                         }
                     }
