@@ -72,19 +72,14 @@ impl Microfacet {
         }
     }
 
-    /// Smith masking G1(w, m), 0 when w sees the back of m.
+    /// Smith masking G1(w, m), 0 when w sees the back of m. The BSDFs use the separable
+    /// masking-shadowing G(wo, wi, m) = G1(wo, m) G1(wi, m).
     #[inline]
     pub fn g1(&self, w: Vec3, m: Vec3) -> f32 {
         if w.dot(m) * w.z <= 0.0 {
             return 0.0;
         }
         1.0 / (1.0 + self.lambda(w))
-    }
-
-    /// Separable masking-shadowing G(wo, wi, m) = G1(wo, m) G1(wi, m).
-    #[inline]
-    pub fn g(&self, wo: Vec3, wi: Vec3, m: Vec3) -> f32 {
-        self.g1(wo, m) * self.g1(wi, m)
     }
 
     /// Samples a microfacet normal seen from `wo` (wo.z > 0). Returns `(m, pdf(m))`.
