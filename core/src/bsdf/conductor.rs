@@ -70,8 +70,8 @@ impl Conductor {
         if wi.z <= 0.0 || pdf_m <= 0.0 {
             return None;
         }
-        // pdf and value from wi, exactly as `pdf` and `eval` compute them, so that MIS sees
-        // the same numbers whichever strategy produced the direction.
+        // pdf and value from wi, exactly as `eval_pdf` computes them for light sampling, so
+        // that MIS sees the same numbers whichever strategy produced the direction.
         let (value, pdf) = self.eval_pdf(uv, wo, wi);
         if !(pdf > 0.0) {
             return None;

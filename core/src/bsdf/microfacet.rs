@@ -100,8 +100,9 @@ impl Microfacet {
         Self::pdf_of(wo, m, self.d(m), self.g1(wo, m))
     }
 
-    /// [`Microfacet::pdf`] (for wo.z > 0) from `d` = D(m) and `g1o` = G1(wo, m), which the
-    /// BSDF's value needs too: computed once for both.
+    /// [`Microfacet::pdf`] from `d` = D(m) and `g1o` = G1(wo, m), which the BSDF's value needs
+    /// too: computed once for both. Only for wo.z > 0 (or NaN), which the caller has checked:
+    /// [`Microfacet::pdf`]'s own test is not repeated here.
     #[inline]
     pub fn pdf_of(wo: Vec3, m: Vec3, d: f32, g1o: f32) -> f32 {
         g1o * wo.dot(m).max(0.0) * d / wo.z
