@@ -78,7 +78,7 @@ pub struct WorkerArgs {
     #[arg(long)]
     pub threads: Option<usize>,
     /// Chunks rendered at once on those threads, so that chunk ends do not idle them, 1 to
-    /// 256 (default: half the threads, 4 to 16). Each holds its tile's accumulation and, while
+    /// 256 (default: half the threads, 2 to 16). Each holds its tile's accumulation and, while
     /// idle, one lease request open at the coordinator.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
     pub slots: Option<u32>,

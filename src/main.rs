@@ -66,7 +66,7 @@ struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, 4 to
+    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, 2 to
     /// 16). Does not change the image.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
     slots: Option<u32>,

@@ -82,17 +82,15 @@ pub fn run(cfg: WorkerConfig) -> Result<u64, WorkerError> {
     Ok(done)
 }
 
-/// Chunks in flight for `threads` render threads: half the threads, at least 4 and at most
+/// Chunks in flight for `threads` render threads: half the threads, at least 2 and at most
 /// [`MAX_AUTO_SLOTS`]. A chunk is rendered in bands of two rows (16 for a 32-pixel tile); with
 /// too few chunks in flight, the threads that finish their bands wait for a chunk's last band
 /// and its upload before the next chunk brings work. Measured on 16 cores
 /// (docs/BENCHMARKS.md, "Multi-core scaling"): at 16 threads, 8 chunks render 16 to 31% more
-/// samples a second than 2, and 4 chunks about half that; on 2 cores 4 chunks render 0 to 3%
-/// more than 2 ("Issue 15, fifteenth step"): the faster a chunk renders, the more its
-/// turnaround shows. Each chunk in flight holds its accumulation (its tile's pixels) and, while
-/// idle, one lease request at the coordinator.
+/// samples a second than 2, and 4 chunks about half that. Each chunk in flight holds its
+/// accumulation (its tile's pixels) and, while idle, one lease request at the coordinator.
 pub fn auto_slots(threads: usize) -> usize {
-    (threads / 2).clamp(4, MAX_AUTO_SLOTS)
+    (threads / 2).clamp(2, MAX_AUTO_SLOTS)
 }
 
 /// The most chunks [`auto_slots`] keeps in flight: 16 slots of 16 bands keep 64 threads
