@@ -43,10 +43,10 @@ impl Conductor {
         }
         let m = (wo + wi).normalize();
         let mf = r.at(uv);
-        let (d, g1o) = (mf.d(m), mf.g1(wo, m));
+        let (d, g, pdf_m) = mf.terms(wo, wi, m);
         let f = fresnel_conductor(wo.dot(m), self.eta, self.k);
-        let v = d * (g1o * mf.g1(wi, m)) / (4.0 * wo.z);
-        (self.specular_reflectance.eval(uv) * f * v, Microfacet::pdf_of(wo, m, d, g1o) / (4.0 * wo.dot(m)))
+        let v = d * g / (4.0 * wo.z);
+        (self.specular_reflectance.eval(uv) * f * v, pdf_m / (4.0 * wo.dot(m)))
     }
 
     #[inline]

@@ -11,7 +11,7 @@
 use glam::{Vec2, Vec3};
 
 use super::conductor::Roughness;
-use super::microfacet::{fresnel_dielectric, reflect, refract, Microfacet};
+use super::microfacet::{fresnel_dielectric, reflect, refract};
 use super::BsdfSample;
 use crate::math::Rgb;
 use crate::texture::{TexCoord, Texture};
@@ -87,10 +87,8 @@ impl Dielectric {
         let Some((m, is_reflect)) = Self::half_vector(wo, wi, eta) else { return (Rgb::ZERO, 0.0) };
         let mf = r.at(uv);
         let (f, _) = fresnel_dielectric(wo.dot(m), eta);
-        let (d, g1o) = (mf.d(m), mf.g1(wo, m));
-        let dg = d * (g1o * mf.g1(wi, m));
-        // (wo.z > 0 in the flipped frame: the microfacet pdf's own test is passed.)
-        let pdf_m = Microfacet::pdf_of(wo, m, d, g1o);
+        let (d, g, pdf_m) = mf.terms(wo, wi, m);
+        let dg = d * g;
         if is_reflect {
             (self.specular_reflectance.eval(uv) * (f * dg / (4.0 * wo.z)), f * pdf_m / (4.0 * wo.dot(m)))
         } else {

@@ -72,8 +72,7 @@ impl Microfacet {
         }
     }
 
-    /// Smith masking G1(w, m), 0 when w sees the back of m. The BSDFs use the separable
-    /// masking-shadowing G(wo, wi, m) = G1(wo, m) G1(wi, m).
+    /// Smith masking G1(w, m), 0 when w sees the back of m.
     #[inline]
     pub fn g1(&self, w: Vec3, m: Vec3) -> f32 {
         if w.dot(m) * w.z <= 0.0 {
@@ -100,11 +99,19 @@ impl Microfacet {
         Self::pdf_of(wo, m, self.d(m), self.g1(wo, m))
     }
 
-    /// [`Microfacet::pdf`] from `d` = D(m) and `g1o` = G1(wo, m), which the BSDF's value needs
-    /// too: computed once for both. Only for wo.z > 0 (or NaN), which the caller has checked:
-    /// [`Microfacet::pdf`]'s own test is not repeated here.
+    /// What a microfacet BSDF's value and pdf need, each term computed once: D(m), the
+    /// separable masking-shadowing G(wo, wi, m) = G1(wo, m) G1(wi, m), and [`Microfacet::pdf`]
+    /// of m (which shares D and G1(wo)).
     #[inline]
-    pub fn pdf_of(wo: Vec3, m: Vec3, d: f32, g1o: f32) -> f32 {
+    pub fn terms(&self, wo: Vec3, wi: Vec3, m: Vec3) -> (f32, f32, f32) {
+        let (d, g1o) = (self.d(m), self.g1(wo, m));
+        let pdf = if wo.z <= 0.0 { 0.0 } else { Self::pdf_of(wo, m, d, g1o) };
+        (d, g1o * self.g1(wi, m), pdf)
+    }
+
+    /// [`Microfacet::pdf`] for wo.z > 0 from D(m) and G1(wo, m).
+    #[inline]
+    fn pdf_of(wo: Vec3, m: Vec3, d: f32, g1o: f32) -> f32 {
         g1o * wo.dot(m).max(0.0) * d / wo.z
     }
 

@@ -9,7 +9,7 @@
 use glam::{Vec2, Vec3};
 
 use super::conductor::Roughness;
-use super::microfacet::{fresnel_dielectric, reflect, refract, Microfacet};
+use super::microfacet::{fresnel_dielectric, reflect, refract};
 use super::BsdfSample;
 use crate::math::{square_to_cosine_hemisphere, Rgb, INV_PI};
 use crate::texture::{TexCoord, Texture};
@@ -128,9 +128,9 @@ impl Plastic {
         let m = (wo + wi).normalize();
         let mf = r.roughness.at(uv);
         let f = fresnel_dielectric(wo.dot(m), self.eta).0;
-        let (d, g1o) = (mf.d(m), mf.g1(wo, m));
-        let value = f * d * (g1o * mf.g1(wi, m)) / (4.0 * wo.z);
-        (self.specular_reflectance.eval(uv) * value, Microfacet::pdf_of(wo, m, d, g1o) / (4.0 * wo.dot(m)))
+        let (d, g, pdf_m) = mf.terms(wo, wi, m);
+        let value = f * d * g / (4.0 * wo.z);
+        (self.specular_reflectance.eval(uv) * value, pdf_m / (4.0 * wo.dot(m)))
     }
 
     #[inline]
