@@ -9,7 +9,11 @@
 #
 # Scenes and sample counts: SCENES="SCENE.xml:SPP ..." (default below: 5 to 10 s a scene at
 # 1 thread; SCENES="" measures the farm alone, as bench/farm-overhead.sh does). Farm job: FARM="SCENE.xml:SPP:TILE:CHUNK_SPP". docs/BENCHMARKS.md, "Multi-core
-# scaling", has a 16-core run.
+# scaling", has 16-core runs.
+# MITSUBA="scalar_rgb llvm_ad_rgb" adds Mitsuba 3 beside each row (one run each, after Furnace's;
+# llvm gets one untimed warm-up a scene at the most threads), through bench/peers/py.sh or
+# MITSUBA_PY (a python3 whose PYTHONPATH holds mitsuba: bench/peers/pack-offline.sh packs one
+# for a machine without a network).
 set -euo pipefail
 F="$(realpath "$1")"; THREADS="${2:-1 2 4 8 16}"; REPS="${3:-2}"
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
@@ -22,19 +26,31 @@ echo "cpu: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), 
 "$F" render tests/scenes/cbox.xml --spp 1 --threads 1 -o "$TMP/x.exr" 2>&1 | grep -m1 -o 'Sobol sets.*' || true
 
 rate() { sed -n 's/.*: \([0-9.]*\) Msamples\/s.*/\1/p'; }
+MITSUBA="${MITSUBA:-}"; MPY="${MITSUBA_PY:-$ROOT/bench/peers/py.sh}"
+mrate() {  # VARIANT SCENE SPP THREADS: Msamples/s of one Mitsuba render, or nothing
+    timeout 900 "$MPY" bench/peers/render.py "$2" --variant "$1" --spp "$3" --threads "$4" --out "$TMP/m.exr" 2>/dev/null \
+        | sed -n 's/.* samples_per_s=\([0-9.]*\) .*/\1/p' | awk '{printf "%.3f", $1 / 1e6}' || true
+}
 best() { sort -g | tail -1; }   # best of REPS: the least disturbed run
 
 [ -z "$SCENES" ] || echo
 [ -z "$SCENES" ] || echo "## furnace render: Msamples/s (best of $REPS), speed-up over ${THREADS%% *} thread(s), efficiency"
 for entry in $SCENES; do
     scene="${entry%:*}"; spp="${entry##*:}"; base=""
+    most="$(printf '%s\n' $THREADS | sort -n | tail -1)"
+    case " $MITSUBA " in *" llvm_ad_rgb "*) mrate llvm_ad_rgb "$scene" "$spp" "$most" > /dev/null;; esac
     for t in $THREADS; do
         r="$(for _ in $(seq "$REPS"); do
             "$F" render "$scene" --spp "$spp" --threads "$t" -o "$TMP/out.exr" 2>&1 | rate
         done | best)"
         [ -z "$base" ] && base="$r"
         awk -v s="$(basename "$scene" .xml)" -v n="$spp" -v t="$t" -v r="$r" -v b="$base" -v t0="${THREADS%% *}" \
-            'BEGIN { printf "%-10s %4d spp %3d threads %8.3f Ms/s  x%5.2f  %5.1f%%\n", s, n, t, r, r / b, 100 * r / b * t0 / t }'
+            'BEGIN { printf "%-10s %4d spp %3d threads %8.3f Ms/s  x%5.2f  %5.1f%%", s, n, t, r, r / b, 100 * r / b * t0 / t }'
+        for v in $MITSUBA; do
+            m="$(mrate "$v" "$scene" "$spp" "$t")"
+            awk -v v="$v" -v m="$m" -v r="$r" 'BEGIN { if (m > 0) printf "  %s %.3f (F/M %.2f)", v, m, r / m; else printf "  %s failed", v }'
+        done
+        echo
     done
 done
 
