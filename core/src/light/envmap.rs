@@ -184,9 +184,13 @@ impl EnvMap {
         };
         // The bordered texels, texel luminance (while the grid is made), the grid, the corners
         // being built, and the levels (counted half again: a level and the one made from it
-        // are held together).
+        // are held together), then the guide.
         let bordered = 12 * ((w + 2) * (h + 2) + 1);
-        (bordered + 4 * w * h + grid + corners + levels + levels / 2, bordered + corners + levels)
+        let guide = (GUIDE * GUIDE * std::mem::size_of::<Guide>()) as u64;
+        (
+            bordered + 4 * w * h + grid + corners + levels + levels / 2 + guide,
+            bordered + corners + levels + guide,
+        )
     }
 
     /// The same map with MIS compensation on or off.
@@ -548,10 +552,11 @@ const GUIDE: usize = 32;
 #[derive(Clone, Copy, Debug)]
 struct Guide {
     /// Steps of the descent taken (0 at the root, up to levels.len() - 1), and the node's
-    /// entry (x, y) in the level those steps reached.
-    depth: usize,
-    x: usize,
-    y: usize,
+    /// entry (x, y) in the level those steps reached (u32: a level has fewer than 2^32
+    /// entries a side, as the map has fewer texels).
+    depth: u32,
+    x: u32,
+    y: u32,
     x0: f64,
     sx: f64,
     y0: f64,
@@ -625,7 +630,10 @@ impl Warp {
     /// following the descent's splits of the square exactly as [`choose16`] and [`pick4`] make
     /// them (the same f32 column sums, the same f64 running sums). A margin of 1e-12 keeps a
     /// split that rounding could move to either side of the cell's edge from counting as
-    /// outside it; a child of weight 0 has an empty preimage and never holds the cell.
+    /// outside it. Only splits need it: a child's lower edge with no weight before it
+    /// (p[k] = 0) or upper edge with none after it (p[k + 1] = sum) is its parent's edge, which
+    /// the descent keeps exactly (its tests `x >= p && sum > p`, and the clamps to [0, 1)).
+    /// A child of weight 0 has an empty preimage and never holds the cell.
     fn guide_for(&self, gx: usize, gy: usize) -> Guide {
         const MARGIN: f64 = 1e-12;
         let n = GUIDE as f64;
@@ -642,7 +650,13 @@ impl Warp {
             }
             (0..4).find_map(|k| {
                 let (e0, e1) = (lo + (hi - lo) * (p[k] / p[4]), lo + (hi - lo) * (p[k + 1] / p[4]));
-                (w[k] > 0.0 && e0 + MARGIN <= s && t <= e1 - MARGIN).then_some((k, e0, e1))
+                let below = if p[k] == 0.0 { lo <= s } else { e0 + MARGIN <= s };
+                let above = if p[k + 1] == p[4] { t <= hi } else { t <= e1 - MARGIN };
+                (w[k] > 0.0 && below && above).then_some((
+                    k,
+                    lo.max(e0),
+                    if p[k + 1] == p[4] { hi } else { e1 },
+                ))
             })
         };
         for lev in self.levels[..self.levels.len() - 1].iter().rev() {
@@ -654,6 +668,7 @@ impl Warp {
             (depth, x, y) = (depth + 1, 4 * x + dx, 4 * y + dy);
             (x0, x1, y0, y1) = (e0, e1, f0, f1);
         }
+        let (depth, x, y) = (depth as u32, x as u32, y as u32);
         Guide { depth, x, y, x0, sx: 1.0 / (x1 - x0), y0, sy: 1.0 / (y1 - y0) }
     }
 
@@ -743,8 +758,8 @@ impl Warp {
     /// The rest of the descent from `node`, with (ux, uy) in the node's own unit square.
     #[inline(always)]
     fn descend(&self, node: &Guide, mut ux: f64, mut uy: f64) -> Option<(f32, f32, Cell)> {
-        let (mut x, mut y) = (node.x, node.y);
-        for lev in self.levels[..self.levels.len() - 1 - node.depth].iter().rev() {
+        let (mut x, mut y) = (node.x as usize, node.y as usize);
+        for lev in self.levels[..self.levels.len() - 1 - node.depth as usize].iter().rev() {
             let (dx, dy) = choose16(lev.block(x, y), &mut ux, &mut uy)?;
             (x, y) = (4 * x + dx, 4 * y + dy);
         }
@@ -1216,14 +1231,21 @@ mod tests {
             let env = EnvMap::new(Arc::new(bmp), 1.0, Mat3::IDENTITY, filter, compensate);
             let warp = &env.warp;
             let mut depths = vec![0usize; warp.levels.len()];
-            warp.guide.iter().for_each(|g| depths[g.depth] += 1);
+            warp.guide.iter().for_each(|g| depths[g.depth as usize] += 1);
             let (mut differ, mut state) = (0, 0x9e3779b97f4a7c15u64);
             let mut next = || {
                 state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
                 (state >> 11) as f64 / (1u64 << 53) as f64
             };
-            for _ in 0..200_000 {
-                let (ux, uy) = (next(), next());
+            // Random points, then the guide's cell edges and the square's, and inputs outside it.
+            let edges = (0..=GUIDE).flat_map(|i| {
+                let e = i as f64 / GUIDE as f64;
+                [e, e - 1e-17, e + 1e-17, e.next_down(), e.next_up()]
+            });
+            let edges: Vec<f64> = edges.chain([-0.5, 1.5, f64::NAN, ONE_BELOW]).collect();
+            let odd = edges.iter().flat_map(|&a| edges.iter().step_by(7).map(move |&b| (a, b)));
+            let odd: Vec<(f64, f64)> = odd.flat_map(|(a, b)| [(a, b), (b, a)]).collect();
+            for (ux, uy) in (0..200_000).map(|_| (next(), next())).chain(odd) {
                 match (warp.sample(ux, uy), warp.sample_unguided(ux, uy)) {
                     (Some((u, v, c)), Some((u2, v2, c2))) => {
                         if (c.i, c.k) != (c2.i, c2.k) || (u - u2).abs() > 1e-6 || (v - v2).abs() > 1e-6 {
@@ -1236,9 +1258,12 @@ mod tests {
             }
             assert!(differ <= 2, "map {n}: {differ} of 200000 samples differ; guide depths {depths:?}");
             if n == 0 {
-                // On the sun map most of the square starts below the root's children.
-                let deep: usize = depths[2..].iter().sum();
-                assert!(deep * 2 > GUIDE * GUIDE, "guide depths {depths:?}");
+                // On the sun map most of the square starts at the bottom, and only cells that
+                // straddle one of the root's splits start at the root: at most 3 columns of
+                // cells and the cells of 3 rows in each of 4 columns' ranges (fewer than 4 x 3
+                // x 2 = 24, as a row split crosses one row of cells).
+                assert!(depths[depths.len() - 1] * 2 > GUIDE * GUIDE, "guide depths {depths:?}");
+                assert!(depths[0] <= 3 * GUIDE + 24, "guide depths {depths:?}");
             }
         }
     }
