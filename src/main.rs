@@ -66,7 +66,7 @@ struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, 2 to
+    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, 4 to
     /// 16). Does not change the image.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
     slots: Option<u32>,
@@ -232,7 +232,7 @@ fn render(a: RenderArgs) -> Result<()> {
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
     let threads = if threads == 0 { rayon::current_num_threads() } else { threads };
-    let slots = a.slots.map_or_else(|| furnace_worker::auto_slots(threads), |k| k as usize);
+    let slots = a.slots.map_or_else(|| local_slots(threads), |k| k as usize);
     image.write_exr(&out)?;
     let png = out.with_extension("png");
     image.write_png(&png, a.exposure)?;
@@ -262,9 +262,22 @@ fn render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+/// Chunks in flight for a render in this process on `threads` threads: the farm worker's
+/// default ([`furnace_worker::auto_slots`], half the threads, 2 to 16), but at least 4. On a
+/// machine this busy the chunk threads, which merge, hand over and lease between chunks, wait
+/// for a core; with only two chunks in flight the pool's threads can run out of bands. On this
+/// 2-core VM, 2 threads, 64 spp, medians of 7 interleaved runs, 4 against 2: textured -0.5% to
+/// +3.6%, envmap +2.1% to +4.4%, thinlens +2.7% to +2.8% (plain and profile-guided builds;
+/// docs/BENCHMARKS.md, issue 15's sixteenth step). A farm worker keeps 2 on so few threads:
+/// there, extra chunks in flight would be held from idle workers at a job's end; here there is
+/// no other worker.
+pub fn local_slots(threads: usize) -> usize {
+    furnace_worker::auto_slots(threads).max(4)
+}
+
 /// Renders on this machine through the farm in one process: a coordinator that stores nothing
-/// and one worker on `threads` threads (0: all cores) with `slots` chunks in flight (0: the
-/// worker's default). The bytes are the farm's. Returns the image, the render statistics, the
+/// and one worker on `threads` threads (0: all cores) with `slots` chunks in flight (0:
+/// [`local_slots`]). The bytes are the farm's. Returns the image, the render statistics, the
 /// estimated relative MSE and the dropped samples.
 pub fn render_local(
     scene: Arc<Scene>,
@@ -277,6 +290,10 @@ pub fn render_local(
     let lock = || coord.lock().unwrap_or_else(|e| e.into_inner());
     let job = lock().submit_scene(scene, settings)?;
     let link = Arc::new(LocalLink::new(coord.clone()));
+    let slots = match slots {
+        0 => local_slots(if threads == 0 { rayon::current_num_threads() } else { threads }),
+        k => k,
+    };
     let cfg = WorkerConfig {
         link: link.clone(),
         threads,

@@ -52,7 +52,7 @@ fn render_through_the_in_process_farm_equals_the_plain_render_loop() {
         let o = cmd.args(["--tile", tile, "-o"]).arg(&out).arg(scenes().join("small.xml")).output().unwrap();
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert!(o.status.success(), "{stderr}");
-        let in_flight = format!("(up to {} chunks in flight)", slots.unwrap_or("2"));
+        let in_flight = format!("(up to {} chunks in flight)", slots.unwrap_or("4"));
         assert!(stderr.contains(&in_flight), "expected {in_flight} in {stderr}");
         let img = Image::read_exr(&out).unwrap();
         assert!(
