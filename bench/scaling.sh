@@ -32,12 +32,12 @@ mrate() {  # VARIANT SCENE SPP THREADS: Msamples/s of one Mitsuba render, or not
         | sed -n 's/.* samples_per_s=\([0-9.]*\) .*/\1/p' | awk '{printf "%.3f", $1 / 1e6}' || true
 }
 best() { sort -g | tail -1; }   # best of REPS: the least disturbed run
+most="$(printf '%s\n' $THREADS | sort -n | tail -1)"   # llvm's warm-up thread count
 
 [ -z "$SCENES" ] || echo
 [ -z "$SCENES" ] || echo "## furnace render: Msamples/s (best of $REPS), speed-up over ${THREADS%% *} thread(s), efficiency"
 for entry in $SCENES; do
     scene="${entry%:*}"; spp="${entry##*:}"; base=""
-    most="$(printf '%s\n' $THREADS | sort -n | tail -1)"
     case " $MITSUBA " in *" llvm_ad_rgb "*) mrate llvm_ad_rgb "$scene" "$spp" "$most" > /dev/null;; esac
     for t in $THREADS; do
         r="$(for _ in $(seq "$REPS"); do
@@ -84,5 +84,5 @@ farm() {  # farm WORKERS THREADS_EACH
         'BEGIN { f -= f0; l -= l0; printf "%2d workers x %2d threads: farm %7.2f s, furnace render --threads %2d %7.2f s, farm/render %.2f, bytes %s\n", w, e, f, w * e, l, f / l, s }'
 }
 for w in $THREADS; do farm "$w" 1; done
-most="$(printf '%s\n' $THREADS | sort -n | tail -1)"; [ "$most" -gt 1 ] && farm 1 "$most"
+[ "$most" -gt 1 ] && farm 1 "$most"
 exit 0

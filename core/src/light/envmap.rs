@@ -649,20 +649,18 @@ impl Warp {
                 return None;
             }
             (0..4).find_map(|k| {
-                let (e0, e1) = (lo + (hi - lo) * (p[k] / p[4]), lo + (hi - lo) * (p[k + 1] / p[4]));
-                let below = if p[k] == 0.0 { lo <= s } else { e0 + MARGIN <= s };
-                let above = if p[k + 1] == p[4] { t <= hi } else { t <= e1 - MARGIN };
-                (w[k] > 0.0 && below && above).then_some((
-                    k,
-                    lo.max(e0),
-                    if p[k + 1] == p[4] { hi } else { e1 },
-                ))
+                // (e0 is lo exactly when p[k] = 0; e1 is hi, not its rounding, when nothing
+                // follows. The parent's preimage holds [s, t) at those edges.)
+                let (first, last) = (p[k] == 0.0, p[k + 1] == p[4]);
+                let e0 = lo + (hi - lo) * (p[k] / p[4]);
+                let e1 = if last { hi } else { lo + (hi - lo) * (p[k + 1] / p[4]) };
+                let holds = (first || e0 + MARGIN <= s) && (last || t <= e1 - MARGIN);
+                (w[k] > 0.0 && holds).then_some((k, e0, e1))
             })
         };
         for lev in self.levels[..self.levels.len() - 1].iter().rev() {
             let blk = lev.block(x, y);
-            let col = std::array::from_fn(|j| ((blk[j] + blk[4 + j]) + (blk[8 + j] + blk[12 + j])) as f64);
-            let Some((dx, e0, e1)) = holding(col, x0, x1, a, b) else { break };
+            let Some((dx, e0, e1)) = holding(column_sums(blk), x0, x1, a, b) else { break };
             let rows = std::array::from_fn(|r| blk[4 * r + dx] as f64);
             let Some((dy, f0, f1)) = holding(rows, y0, y1, c, d) else { break };
             (depth, x, y) = (depth + 1, 4 * x + dx, 4 * y + dy);
@@ -854,13 +852,18 @@ fn in_cell(c: usize, f: f64, n: usize) -> f32 {
 /// the descent is a serial chain of them.
 #[inline]
 fn choose16(b: &[f32; 16], ux: &mut f64, uy: &mut f64) -> Option<(usize, usize)> {
-    // Column sums in f32: the entries are non-negative, so a column sums to 0 only if it is
-    // empty.
-    let col = std::array::from_fn(|j| ((b[j] + b[4 + j]) + (b[8 + j] + b[12 + j])) as f64);
-    let (dx, x) = pick4(col, *ux)?;
+    let (dx, x) = pick4(column_sums(b), *ux)?;
     let (dy, y) = pick4(std::array::from_fn(|r| b[4 * r + dx] as f64), *uy)?;
     (*ux, *uy) = (x, y);
     Some((dx, dy))
+}
+
+/// The column sums of a 4 x 4 block, in f32 (the entries are non-negative, so a column sums to
+/// 0 only if it is empty): the weights of [`choose16`]'s first choice, and of the guide's
+/// splits ([`Warp::guide_for`]), which must be the same numbers.
+#[inline(always)]
+fn column_sums(b: &[f32; 16]) -> [f64; 4] {
+    std::array::from_fn(|j| ((b[j] + b[4 + j]) + (b[8 + j] + b[12 + j])) as f64)
 }
 
 /// One of four non-negative weights chosen with `u` in [0, 1): the `k` whose share of their
