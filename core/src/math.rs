@@ -219,6 +219,23 @@ pub fn apart(v: Vec3) -> Vec3 {
     v
 }
 
+/// [`apart`] for a `Vec2`: its two coordinates read one at a time.
+#[inline(always)]
+pub fn apart2(v: Vec2) -> Vec2 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let (mut x, mut y) = (v.x, v.y);
+        // SAFETY: an empty instruction sequence; it reads and writes only these registers.
+        unsafe {
+            std::arch::asm!("/* {0} {1} */", inout(xmm_reg) x, inout(xmm_reg) y,
+                options(pure, nomem, nostack, preserves_flags));
+        }
+        Vec2::new(x, y)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    v
+}
+
 /// [`apart`], in a register's lanes.
 #[inline(always)]
 fn lanes(v: Vec3) -> glam::Vec3A {

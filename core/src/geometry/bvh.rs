@@ -1369,9 +1369,20 @@ impl Accel {
 
     /// The closest hit along `ray`, if any.
     pub fn intersect(&self, shapes: &[Shape], ray: &Ray) -> Option<Interaction> {
+        let hit = self.closest(shapes, ray)?;
+        Some(self.hit_interaction(shapes, ray, &hit))
+    }
+
+    /// The closest hit along `ray`, if any, before its interaction is made
+    /// ([`Accel::hit_interaction`]). A caller that makes it only after testing for a miss
+    /// builds it where it is used; made inside an `Option`, its fields were written in
+    /// pieces and copied out whole, and the copy waited on those writes (a failed store
+    /// forward).
+    #[inline]
+    pub fn closest(&self, shapes: &[Shape], ray: &Ray) -> Option<Hit> {
         let mut q = Query::new(shapes, ray);
         let (t, k, aux) = self.query_with(&mut q, false)?;
-        Some(self.interaction(shapes, k, ray, t, aux, q.inner.get()))
+        Some(Hit { t, k, aux, inner: q.inner.get() })
     }
 
     /// Whether anything blocks `ray` within `[tmin, tmax)`.

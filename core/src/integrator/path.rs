@@ -12,7 +12,7 @@ use crate::bsdf::Bsdf;
 use crate::geometry::bvh::Hit;
 use crate::geometry::{Ray, RayDifferentials};
 use crate::light::Light;
-use crate::math::{apart, mis_power, Rgb};
+use crate::math::{apart, apart2, mis_power, Rgb};
 use crate::sampler::SampleStream;
 use crate::scene::Scene;
 use crate::texture::Texture;
@@ -78,10 +78,10 @@ pub fn li(
         // Without light sampling at the previous vertex, emission found here is unweighted.
         let unweighted = depth == 0 || prev_delta || !plan.light_sampling;
         let hit = match std::mem::replace(&mut first, First::Trace) {
-            First::Trace => scene.intersect(&ray),
-            First::Found(hit) => hit.map(|h| scene.accel.hit_interaction(&scene.shapes, &ray, &h)),
+            First::Trace => scene.accel.closest(&scene.shapes, &ray),
+            First::Found(hit) => hit,
         };
-        let Some(it) = hit else {
+        let Some(hit) = hit else {
             if plan.escaped_rays_lookup && show_emitters {
                 st.escaped_lookups += 1;
                 for &k in &scene.infinite_lights {
@@ -99,6 +99,8 @@ pub fn li(
             }
             break;
         };
+        // (Made here, not inside the Option: see `Accel::closest`.)
+        let it = scene.accel.hit_interaction(&scene.shapes, &ray, &hit);
         let shape = &scene.shapes[it.shape as usize];
         // As Mitsuba 3.9: with hide_emitters, camera rays pass through emitting surfaces
         // (whatever their BSDF) as if they were not there; passing is not a bounce.
@@ -137,7 +139,8 @@ pub fn li(
                 st.footprints += 1;
                 it.tex_coord(d)
             }
-            _ => it.uv.into(),
+            // (Read a coordinate at a time: `math::apart`.)
+            _ => apart2(it.uv).into(),
         };
         // A textured diffuse surface's reflectance, looked up once here instead of by light
         // sampling's eval and again by bsdf.sample (both read it at `tc`, front side only).
