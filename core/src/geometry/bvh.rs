@@ -1685,7 +1685,7 @@ impl Accel {
 pub const PACKET: usize = 8;
 
 /// A closest hit before its interaction is made ([`Accel::hit_interaction`]): 32 bytes where
-/// the interaction takes 116.
+/// the interaction takes 128.
 #[derive(Clone, Copy, Debug)]
 pub struct Hit {
     t: f32,

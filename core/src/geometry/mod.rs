@@ -36,7 +36,14 @@ impl Ray {
 }
 
 /// A ray-surface intersection with everything shading needs.
+///
+/// Aligned to 16 bytes (128 where it would take 116): the compiler writes a record with
+/// 16-byte stores where it can, and with the record on a 16-byte boundary those stores start
+/// at its fields' own boundaries, so that the integrator's reads of a field right after take
+/// their values from the stores in flight (see `math::apart`). PGO build, 2 threads, medians
+/// of 5 interleaved: textured +4.1%, envmap +3.9%, thinlens +1.9%, hair +1.6%.
 #[derive(Clone, Copy, Debug)]
+#[repr(align(16))]
 pub struct Interaction {
     /// Hit point and its absolute floating-point error bound.
     pub p: Vec3,
