@@ -18,7 +18,7 @@ use obvhs::BvhBuildParams;
 
 use super::curves::{missed_by4, Segment, Segments4};
 use super::shapes::Instance;
-use super::{intersect_triangle, Geometry, Interaction, Ray, RayPre, Shape};
+use super::{intersect_triangle, Geometry, Interaction, Leaving, Ray, RayPre, Shape};
 
 /// A primitive in BVH leaf order, 8 bytes: for triangles, `index` is the slot in
 /// [`Accel::tris`] (which holds the vertices and the triangle's index in its mesh); for fibre
@@ -860,11 +860,24 @@ struct Query<'a> {
     /// aux values and its distance in the group's space. When `best` is an instance, this is
     /// its hit (an instance reports only hits that are accepted).
     inner: Cell<(u32, Vec2, f32)>,
+    /// The fibre piece the ray leaves, not tested (see [`Leaving`]).
+    leaving: Option<Leaving>,
 }
 
 impl<'a> Query<'a> {
     fn new(shapes: &'a [Shape], ray: &'a Ray) -> Query<'a> {
-        Query { shapes, ray, pre: RayPre::new(ray.d), best: None, inner: Cell::new((0, Vec2::ZERO, 0.0)) }
+        Query::leaving(shapes, ray, None)
+    }
+
+    fn leaving(shapes: &'a [Shape], ray: &'a Ray, leaving: Option<Leaving>) -> Query<'a> {
+        Query {
+            shapes,
+            ray,
+            pre: RayPre::new(ray.d),
+            best: None,
+            inner: Cell::new((0, Vec2::ZERO, 0.0)),
+            leaving,
+        }
     }
 }
 
@@ -1248,7 +1261,12 @@ impl Accel {
             let shape = &q.shapes[(prim.shape & SHAPE) as usize];
             match &shape.geometry {
                 Geometry::Curves(c) => {
-                    c.intersect_exact(prim.index as usize, ray.o, ray.d, ray.tmin, tmax).map(|h| h.t_aux())
+                    let leaving = match q.leaving {
+                        Some(l) if l.segment == prim.index && l.shape == prim.shape & SHAPE => Some(l.piece),
+                        _ => None,
+                    };
+                    c.intersect_exact(prim.index as usize, ray.o, ray.d, ray.tmin, tmax, leaving)
+                        .map(|h| h.t_aux())
                 }
                 Geometry::Instance(inst) => self.hit_instance(q, inst, tmax, ANY),
                 _ => shape.intersect(prim.index as usize, ray, pre, tmax),
@@ -1369,7 +1387,7 @@ impl Accel {
 
     /// The closest hit along `ray`, if any.
     pub fn intersect(&self, shapes: &[Shape], ray: &Ray) -> Option<Interaction> {
-        let hit = self.closest(shapes, ray)?;
+        let hit = self.closest(shapes, ray, None)?;
         Some(self.hit_interaction(shapes, ray, &hit))
     }
 
@@ -1378,16 +1396,23 @@ impl Accel {
     /// builds it where it is used; made inside an `Option`, its fields were written in
     /// pieces and copied out whole, and the copy waited on those writes (a failed store
     /// forward).
+    /// `leaving`: the fibre piece the ray was spawned from, which is not tested (it has no
+    /// hit to give the ray: [`Leaving`]).
     #[inline]
-    pub fn closest(&self, shapes: &[Shape], ray: &Ray) -> Option<Hit> {
-        let mut q = Query::new(shapes, ray);
+    pub fn closest(&self, shapes: &[Shape], ray: &Ray, leaving: Option<Leaving>) -> Option<Hit> {
+        let mut q = Query::leaving(shapes, ray, leaving);
         let (t, k, aux) = self.query_with(&mut q, false)?;
         Some(Hit { t, k, aux, inner: q.inner.get() })
     }
 
     /// Whether anything blocks `ray` within `[tmin, tmax)`.
     pub fn occluded(&self, shapes: &[Shape], ray: &Ray) -> bool {
-        self.query_with(&mut Query::new(shapes, ray), true).is_some()
+        self.occluded_leaving(shapes, ray, None)
+    }
+
+    /// [`Accel::occluded`] for a ray spawned from the fibre piece `leaving`.
+    pub fn occluded_leaving(&self, shapes: &[Shape], ray: &Ray, leaving: Option<Leaving>) -> bool {
+        self.query_with(&mut Query::leaving(shapes, ray, leaving), true).is_some()
     }
 
     #[cfg(target_arch = "x86_64")]

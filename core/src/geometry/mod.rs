@@ -59,6 +59,20 @@ pub struct Interaction {
     pub dpdv: Vec3,
     pub shape: u32,
     pub prim: u32,
+    /// The piece of the fibre segment hit (a hit on a fibre of the scene's own tree; `None`
+    /// for other surfaces and inside instances): rays spawned here skip it
+    /// ([`Interaction::leaving`]).
+    pub piece: Option<curves::Piece>,
+}
+
+/// A fibre piece that a ray leaves: the ray was spawned from a hit on it, and the tree's
+/// traversal does not test that piece again (see `Curves::intersect_exact`: it has no hit to
+/// give such a ray).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Leaving {
+    pub shape: u32,
+    pub segment: u32,
+    pub piece: curves::Piece,
 }
 
 /// Offsets of the rays through the neighbouring pixel in x and in y (ray differentials).
@@ -69,6 +83,12 @@ pub struct RayDifferentials {
 }
 
 impl Interaction {
+    /// The fibre piece that rays spawned here leave, if this is a hit on one.
+    #[inline]
+    pub fn leaving(&self) -> Option<Leaving> {
+        self.piece.map(|piece| Leaving { shape: self.shape, segment: self.prim, piece })
+    }
+
     /// The texture footprint at this hit of a ray with differentials `d`: where the offset rays
     /// meet the tangent plane gives dp/dx and dp/dy, and least squares against dp/du and dp/dv
     /// gives the uv derivatives (pbrt 3rd ed., section 10.1.1).

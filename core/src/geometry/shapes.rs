@@ -170,7 +170,19 @@ impl Instance {
         let ns = (normals * it.frame.n).normalize();
         let dpdu = self.to_world.transform_vector3(it.dpdu);
         let dpdv = self.to_world.transform_vector3(it.dpdv);
-        Interaction { p, p_err, t, ng, frame: Frame::from_normal_tangent(ns, dpdu), dpdu, dpdv, ..*it }
+        // (A fibre piece inside an instance is not the piece of that index in the scene's
+        // tree: rays from it skip nothing.)
+        Interaction {
+            p,
+            p_err,
+            t,
+            ng,
+            frame: Frame::from_normal_tangent(ns, dpdu),
+            dpdu,
+            dpdv,
+            piece: None,
+            ..*it
+        }
     }
 }
 
@@ -282,6 +294,7 @@ impl Shape {
 
     /// Full surface information for a hit found by [`Shape::intersect`].
     pub fn interaction(&self, shape: u32, prim: usize, ray: &Ray, t: f32, aux: Vec2) -> Interaction {
+        let mut piece = None;
         let (p, p_err, mut ng, mut ns, uv, dpdu, dpdv) = match &self.geometry {
             Geometry::Mesh(m) => match m.faces.get(prim) {
                 Some(f) => {
@@ -291,16 +304,29 @@ impl Shape {
                     let ng = if flip { -f.ng } else { f.ng };
                     let frame = f.frames[flip as usize];
                     let (dpdu, dpdv) = (f.dpdu, f.dpdv);
-                    return Interaction { p, p_err, t, ng, frame, uv, dpdu, dpdv, shape, prim: prim as u32 };
+                    return Interaction {
+                        p,
+                        p_err,
+                        t,
+                        ng,
+                        frame,
+                        uv,
+                        dpdu,
+                        dpdv,
+                        shape,
+                        prim: prim as u32,
+                        piece: None,
+                    };
                 }
                 None => m.surface(prim, aux.x, aux.y),
             },
             Geometry::Curves(c) => {
                 let seg = &c.segments[prim];
-                let piece = super::curves::Piece::from_index(aux.y as u32);
-                let hit = super::curves::FibreHit { t, s: aux.x, piece };
+                let hit_piece = super::curves::Piece::from_index(aux.y as u32);
+                piece = Some(hit_piece);
+                let hit = super::curves::FibreHit { t, s: aux.x, piece: hit_piece };
                 let (p, p_err, uv) = seg.surface(ray.o, ray.d, &hit);
-                let n = seg.normal(piece, p);
+                let n = seg.normal(hit_piece, p);
                 let tangent = seg.tangent();
                 (p, p_err, n, n, uv, tangent, n.cross(tangent))
             }
@@ -342,6 +368,7 @@ impl Shape {
             dpdv,
             shape,
             prim: prim as u32,
+            piece,
         }
     }
 

@@ -71,6 +71,8 @@ pub fn li(
     let mut prev_pdf = 0.0f32;
     let mut prev_delta = true;
     let mut passes = 0u32;
+    // The fibre piece the ray leaves (its traversal does not test it: `geometry::Leaving`).
+    let mut leaving = None;
 
     loop {
         st.rays += 1;
@@ -78,7 +80,7 @@ pub fn li(
         // Without light sampling at the previous vertex, emission found here is unweighted.
         let unweighted = depth == 0 || prev_delta || !plan.light_sampling;
         let hit = match std::mem::replace(&mut first, First::Trace) {
-            First::Trace => scene.accel.closest(&scene.shapes, &ray),
+            First::Trace => scene.accel.closest(&scene.shapes, &ray, leaving),
             First::Found(hit) => hit,
         };
         let Some(hit) = hit else {
@@ -107,6 +109,7 @@ pub fn li(
         if !show_emitters && shape.light.is_some() && passes < MAX_PASSES {
             passes += 1;
             ray = it.spawn_ray(ray.d);
+            leaving = it.leaving();
             continue;
         }
         let wo_world = -ray.d;
@@ -185,7 +188,7 @@ pub fn li(
                             None => it.spawn_ray(ls_wi),
                         };
                         st.shadow_rays += 1;
-                        if !scene.occluded(&shadow) {
+                        if !scene.occluded_leaving(&shadow, it.leaving()) {
                             let light_pdf = ls.pdf * sel_pdf;
                             let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
                             l += beta * f * ls.li(light) * (w / light_pdf);
@@ -209,6 +212,7 @@ pub fn li(
         prev_pdf = bs.pdf;
         prev_delta = bs.delta;
         ray = it.spawn_ray(wi_world);
+        leaving = it.leaving();
         depth += 1;
 
         if depth >= settings.rr_depth {

@@ -591,6 +591,7 @@ mod tests {
             dpdv: Vec3::Z,
             shape: 0,
             prim: 0,
+            piece: None,
         };
         for uniform in [false, true] {
             let mut env = EnvMap::new(bmp.clone(), 1.0, glam::Mat3::IDENTITY, FilterType::Nearest, false);

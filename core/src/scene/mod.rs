@@ -215,6 +215,13 @@ impl Scene {
     pub fn occluded(&self, ray: &Ray) -> bool {
         self.accel.occluded(&self.shapes, ray)
     }
+
+    /// [`Scene::occluded`] for a ray spawned from the fibre piece `leaving`
+    /// ([`crate::geometry::Leaving`]).
+    #[inline]
+    pub fn occluded_leaving(&self, ray: &Ray, leaving: Option<crate::geometry::Leaving>) -> bool {
+        self.accel.occluded_leaving(&self.shapes, ray, leaving)
+    }
 }
 
 /// Runs a scene load, turning a panic (a bug: every input should get a proper error) into the
