@@ -19,15 +19,16 @@ fn main() {
             if d.dot(it.ng) < 0.0 {
                 d = -d;
             }
-            rays.push(it.spawn_ray(d));
+            // With the fibre piece it leaves, as the integrator traces it.
+            rays.push((it.spawn_ray(d), it.leaving()));
         }
     }
     let t = Instant::now();
-    let hits = rays.iter().filter(|r| scene.intersect(r).is_some()).count();
+    let hits = rays.iter().filter(|(r, l)| scene.accel.closest(&scene.shapes, r, *l).is_some()).count();
     let dt = t.elapsed().as_secs_f64();
     println!("closest hit: {:.2} Mrays/s ({hits} hits)", n as f64 / dt / 1e6);
     let t = Instant::now();
-    let occ = rays.iter().filter(|r| scene.occluded(r)).count();
+    let occ = rays.iter().filter(|(r, l)| scene.occluded_leaving(r, *l)).count();
     let dt = t.elapsed().as_secs_f64();
     println!("any hit:     {:.2} Mrays/s ({occ} occluded)", n as f64 / dt / 1e6);
 }

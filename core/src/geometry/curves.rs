@@ -7,8 +7,10 @@
 //! fibres are about a thousand times thinner than the distances to them, and f32 would lose
 //! the radial term to cancellation. A hit counts only where it lies on the surface of the
 //! union of the pieces: front-facing, and not inside a neighbouring frustum or joint sphere.
-//! So, as in Mitsuba, a ray leaving a fibre, even through its body, never hits the fibre it
-//! starts in.
+//! So, as in Mitsuba, a ray leaving a fibre, even through its body, does not hit the fibre it
+//! starts in; where rounding puts its origin on the wrong side of the surface it could hit
+//! the piece it leaves right there, so the tree does not test that piece for it
+//! ([`crate::geometry::Leaving`]; not inside instances).
 
 use glam::{DVec3, Vec2, Vec3, Vec4};
 
@@ -456,12 +458,13 @@ impl Curves {
     /// [`Curves::intersect`] without the quick f32 rejection (for segments that passed it).
     ///
     /// `leaving`: the piece of this segment that the ray leaves, when it was spawned from a
-    /// hit on it; that piece is not tested. Each piece is convex (a frustum, a sphere): a ray
-    /// spawned off its surface towards the outside stays in the open half-space beyond the
-    /// tangent plane, so it never meets the piece again, and one spawned towards the inside
-    /// starts within it, so it can only leave it, back-facing. Either way the piece has no
-    /// hit to give; the segment's other piece is tested as usual (a ray leaving a frustum can
-    /// still meet its joint sphere where the fibre bends).
+    /// hit on it; that piece is not tested. Each piece is convex (a frustum, a sphere of
+    /// radius r) and the ray starts within its offset d of the point it leaves, on either
+    /// side of the surface as rounding has it: a line from there meets a convex piece's
+    /// surface front-facing only within about sqrt(2 r d) of that point (a ray from inside
+    /// only leaves it, back-facing). So the piece can give such a ray nothing but a hit on
+    /// itself where it starts (a self-intersection); the segment's other piece is tested as
+    /// usual (a ray leaving a frustum can meet its joint sphere where the fibre bends).
     pub(crate) fn intersect_exact(
         &self,
         i: usize,
@@ -773,6 +776,11 @@ mod tests {
                             h.t,
                             hit.piece
                         );
+                        // With the skip: never that piece, and nothing nearer.
+                        assert!(
+                            skipped.is_none_or(|(g, j)| !(j == i && g.piece == hit.piece) && g.t >= h.t),
+                            "the skip kept the piece left or found a nearer hit: {skipped:?}"
+                        );
                         self_hits += 1;
                     }
                     _ => {
@@ -786,6 +794,7 @@ mod tests {
         }
         assert!(leaving_rays > 20_000, "{leaving_rays} rays");
         assert!(elsewhere > 300, "{elsewhere} rays met the fibre elsewhere: the test is too easy");
+        assert!(self_hits > 100, "{self_hits} self-hits without the skip: nothing left to show");
         eprintln!("{leaving_rays} rays, {self_hits} self-hits, {elsewhere} hits elsewhere on the fibre");
     }
 

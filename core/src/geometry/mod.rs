@@ -37,11 +37,12 @@ impl Ray {
 
 /// A ray-surface intersection with everything shading needs.
 ///
-/// Aligned to 16 bytes (128 where it would take 116): the compiler writes a record with
+/// Aligned to 16 bytes (128 where it would take 120): the compiler writes a record with
 /// 16-byte stores where it can, and with the record on a 16-byte boundary those stores start
 /// at its fields' own boundaries, so that the integrator's reads of a field right after take
 /// their values from the stores in flight (see `math::apart`). PGO build, 2 threads, medians
-/// of 5 interleaved: textured +4.1%, envmap +3.9%, thinlens +1.9%, hair +1.6%.
+/// of 5 interleaved, with the hit record made after the miss test: textured +6.1% in all
+/// (docs/BENCHMARKS.md, issue 15's seventeenth step); the other scenes within the spread.
 #[derive(Clone, Copy, Debug)]
 #[repr(align(16))]
 pub struct Interaction {
@@ -66,8 +67,8 @@ pub struct Interaction {
 }
 
 /// A fibre piece that a ray leaves: the ray was spawned from a hit on it, and the tree's
-/// traversal does not test that piece again (see `Curves::intersect_exact`: it has no hit to
-/// give such a ray).
+/// traversal does not test that piece again (see `Curves::intersect_exact`: all it could give
+/// such a ray is a hit on itself where the ray starts).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Leaving {
     pub shape: u32,
@@ -121,7 +122,9 @@ impl Interaction {
         crate::texture::TexCoord { uv: self.uv, dx, dy }
     }
 
-    /// A ray leaving the surface in direction `d` that cannot re-hit the surface it starts on.
+    /// A ray leaving the surface in direction `d`, its origin offset by the hit point's error
+    /// bound so that it does not re-hit the surface it starts on (a fibre's bound can fall
+    /// short: rays from fibre hits also skip the piece they leave, [`Interaction::leaving`]).
     pub fn spawn_ray(&self, d: Vec3) -> Ray {
         Ray::new(offset_ray_origin(self.p, self.p_err, self.ng, d), d)
     }
