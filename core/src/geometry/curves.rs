@@ -720,13 +720,7 @@ mod tests {
     /// segments, so that rays leaving one piece meet others (neighbours, joint spheres).
     #[test]
     fn a_ray_leaving_a_fibre_piece_never_hits_it_again() {
-        let mut state = 0x9e37_79b9u32;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 17;
-            state ^= state << 5;
-            state as f32 / u32::MAX as f32
-        };
+        let mut rnd = uniform_numbers(0x9e37_79b9u32);
         let pts: Vec<(Vec3, f32)> = (0..8)
             .map(|k| {
                 (
@@ -798,6 +792,16 @@ mod tests {
         eprintln!("{leaving_rays} rays, {self_hits} self-hits, {elsewhere} hits elsewhere on the fibre");
     }
 
+    /// Numbers in [0, 1] from a 32-bit xorshift seeded with `state`.
+    fn uniform_numbers(mut state: u32) -> impl FnMut() -> f32 {
+        move || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            state as f32 / u32::MAX as f32
+        }
+    }
+
     fn square_to_uniform_sphere_for_test(u: f32, v: f32) -> Vec3 {
         crate::math::square_to_uniform_sphere(glam::Vec2::new(u, v))
     }
@@ -807,13 +811,7 @@ mod tests {
     /// included.
     #[test]
     fn the_quick_miss_test_never_rejects_a_hit() {
-        let mut state = 0x1234_5678u32;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 17;
-            state ^= state << 5;
-            state as f32 / u32::MAX as f32
-        };
+        let mut rnd = uniform_numbers(0x1234_5678u32);
         let (mut hits, mut rejected) = (0, 0);
         for round in 0..20_000 {
             let far = [1.0, 30.0, 1e3][round % 3];
