@@ -64,7 +64,7 @@ def main():
             submit_args.append(rest[i])
             i += 1
     if "--tile" not in submit_args:
-        submit_args += ["--tile", "64"]  # submit's default; render's is 32, and tiles decide a target's stops
+        submit_args += ["--tile", "64"]  # both commands' default; tiles decide a target's stops
     tmp = tempfile.mkdtemp(prefix="first-preview-")
     serve_cmd = [FURNACE, "serve", "--data-dir", os.path.join(tmp, "data"), "--bind", "127.0.0.1:0",
                  "--local-workers", "0" if processes else workers]

@@ -79,8 +79,9 @@ struct RenderArgs {
     /// With --plan: print it as JSON.
     #[arg(long, requires = "plan")]
     json: bool,
-    /// Tile size in pixels (does not change the image).
-    #[arg(long, default_value_t = 32)]
+    /// Tile size in pixels (does not change the image). The default is `furnace submit`'s; on
+    /// 8 and 16 threads it renders 2-10% faster than 32 (docs/BENCHMARKS.md, "Third run").
+    #[arg(long, default_value_t = 64)]
     tile: u32,
     /// Stop each tile once its estimated relative error is at most this (--spp is then the
     /// cap). The image depends on --tile and --spp-per-chunk, not on threads.
@@ -333,7 +334,7 @@ pub fn local_settings() -> JobSettings {
     JobSettings {
         width: 0,
         height: 0,
-        tile_size: 32,
+        tile_size: 64,
         priority: 0,
         target_rel_error: None,
         ..JobSettings::default()
