@@ -1261,28 +1261,47 @@ impl Accel {
             let shape = &q.shapes[(prim.shape & SHAPE) as usize];
             match &shape.geometry {
                 Geometry::Curves(c) => {
+                    // (Inside an instance, `q.leaving` is the group's: `hit_instance`.)
                     let leaving = match q.leaving {
-                        Some(l) if l.segment == prim.index && l.shape == prim.shape & SHAPE => Some(l.piece),
+                        Some(l)
+                            if l.segment == prim.index
+                                && l.shape == prim.shape & SHAPE
+                                && l.instance.is_none() =>
+                        {
+                            Some(l.piece)
+                        }
                         _ => None,
                     };
                     c.intersect_exact(prim.index as usize, ray.o, ray.d, ray.tmin, tmax, leaving)
                         .map(|h| h.t_aux())
                 }
-                Geometry::Instance(inst) => self.hit_instance(q, inst, tmax, ANY),
+                Geometry::Instance(inst) => self.hit_instance(q, inst, prim.shape & SHAPE, tmax, ANY),
                 _ => shape.intersect(prim.index as usize, ray, pre, tmax),
             }
         }
     }
 
-    /// The hit of `q`'s ray in instance `inst` closer than `tmax` (any hit, with `any`): its
-    /// world distance, and the hit itself in `q.inner`.
+    /// The hit of `q`'s ray in instance `inst` (shape `index`) closer than `tmax` (any hit,
+    /// with `any`): its world distance, and the hit itself in `q.inner`. A ray leaving a fibre
+    /// piece of this instance skips that piece in the group's tree; in other instances the
+    /// piece is another surface.
     #[inline(never)]
-    fn hit_instance(&self, q: &Query, inst: &Instance, tmax: f32, any: bool) -> Option<(f32, Vec2)> {
+    fn hit_instance(
+        &self,
+        q: &Query,
+        inst: &Instance,
+        index: u32,
+        tmax: f32,
+        any: bool,
+    ) -> Option<(f32, Vec2)> {
         let local = inst.local_ray(q.ray, tmax);
         if !(local.ray.tmax > local.ray.tmin) {
             return None;
         }
-        let (t, k, aux) = self.groups[inst.group as usize].query(q.shapes, &local.ray, any)?;
+        let leaving =
+            q.leaving.filter(|l| l.instance == Some(index)).map(|l| Leaving { instance: None, ..l });
+        let mut inner = Query::leaving(q.shapes, &local.ray, leaving);
+        let (t, k, aux) = self.groups[inst.group as usize].query_with(&mut inner, any)?;
         let world = (t + local.shift) / local.scale;
         if !(world < tmax) {
             return None;
@@ -1316,11 +1335,6 @@ impl Accel {
         q.best.map(|(k, aux)| (t, k, aux))
     }
 
-    /// [`Accel::query_with`] for a group's tree (which holds no instances).
-    fn query(&self, shapes: &[Shape], ray: &Ray, any: bool) -> Option<(f32, u32, Vec2)> {
-        self.query_with(&mut Query::new(shapes, ray), any)
-    }
-
     /// The interaction of the hit at `t` on the primitive leaves call `k`.
     fn interaction(
         &self,
@@ -1335,7 +1349,7 @@ impl Accel {
         let shape = prim.shape & SHAPE;
         if prim.shape & (TRIANGLE | CURVE) == 0 {
             if let Geometry::Instance(inst) = &shapes[shape as usize].geometry {
-                return self.instance_interaction(shapes, inst, ray, t, inner);
+                return self.instance_interaction(shapes, inst, shape, ray, t, inner);
             }
         }
         let index =
@@ -1343,14 +1357,15 @@ impl Accel {
         shapes[shape as usize].interaction(shape, index as usize, ray, t, aux)
     }
 
-    /// The interaction of a hit inside instance `inst` (at world distance `t`; `inner` as
-    /// [`Query::inner`] left it), in world space.
+    /// The interaction of a hit inside instance `inst` (shape `index`; at world distance `t`;
+    /// `inner` as [`Query::inner`] left it), in world space.
     #[cold]
     #[inline(never)]
     fn instance_interaction(
         &self,
         shapes: &[Shape],
         inst: &Instance,
+        index: u32,
         ray: &Ray,
         t: f32,
         inner: (u32, Vec2, f32),
@@ -1359,7 +1374,7 @@ impl Accel {
         // The traversal's local ray (its far end aside, which the interaction does not read).
         let local = inst.local_ray(ray, ray.tmax);
         let group = &self.groups[inst.group as usize];
-        inst.to_world(&group.interaction(shapes, k, &local.ray, t_local, aux, inner), t)
+        inst.to_world(&group.interaction(shapes, k, &local.ray, t_local, aux, inner), t, index)
     }
 
     /// Which of a leaf's primitives are fibre segments that the ray certainly misses (bit `j`
@@ -2275,8 +2290,10 @@ mod tests {
     /// `Interaction::spawn_ray` and `Interaction::leaving`) never get a hit on the piece they
     /// leave from `Accel::closest`, and otherwise get what the full query gets;
     /// `Accel::occluded_leaving` agrees with it. The fibres are the second shape, after a
-    /// mesh, so that the skip must match the shape index without the primitive's flags; a
-    /// copy of them inside an instance gives hits with no piece to skip.
+    /// mesh, so that the skip must match the shape index without the primitive's flags. A
+    /// group of other fibres is placed twice, the second copy 3e-3 from the first (within a
+    /// fibre's radius), so that a ray leaving a piece of one copy often meets the same piece
+    /// of the other: that hit is another surface and must stay.
     #[test]
     fn rays_leaving_fibres_through_the_tree_skip_only_their_piece() {
         use crate::geometry::curves::Curves;
@@ -2301,34 +2318,48 @@ mod tests {
         let bounds = (0..group_fibres.segments.len())
             .map(|k| group_fibres.bounds(k))
             .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), (a, b)| (lo.min(a), hi.max(b)));
-        let placed = glam::Mat4::from_translation(Vec3::new(0.0, 0.0, 5.0));
+        let placed = glam::Mat4::from_translation(Vec3::new(0.0, 0.0, 5.0))
+            * glam::Mat4::from_quat(glam::Quat::from_rotation_y(0.7))
+            * glam::Mat4::from_scale(Vec3::new(1.0, 1.7, 0.6));
+        let beside = glam::Mat4::from_translation(Vec3::new(0.003, 0.0, 0.0)) * placed;
         let shapes = vec![
             soup(50, 9).remove(0),
             shape(Geometry::Curves(fibres(&mut s)), "fur"),
             shape(Geometry::Curves(group_fibres), "grouped fur"),
             shape(Geometry::Instance(Instance::new(0, placed, Some(bounds))), "instance"),
+            shape(Geometry::Instance(Instance::new(0, beside, Some(bounds))), "instance beside it"),
         ];
         let accel = Accel::build_grouped(&shapes, &[vec![2]]);
-        let (mut from_fibres, mut self_hits, mut instanced) = (0, 0, 0);
+        let (mut from_fibres, mut self_hits, mut instanced, mut other_copy, mut instanced_self_hits) =
+            (0, 0, 0, 0, 0);
         for round in 0..20_000 {
-            let z = if round % 4 == 0 { 5.0 } else { 0.0 };
-            let target = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 0.2 + Vec3::Z * z;
+            let target = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 0.2;
+            let target = if round % 4 == 0 { placed.transform_point3(target) } else { target };
             let away = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5;
             let o = target + away.normalize_or(Vec3::Z) * 3.0;
-            let Some(it) = accel.intersect(&shapes, &Ray::new(o, (target - o).normalize())) else { continue };
-            if it.shape == 2 {
-                assert!(it.piece.is_none(), "a fibre hit inside an instance names a piece");
-                instanced += 1;
-                continue;
-            }
+            let d = (target - o).normalize();
+            let Some(it) = accel.intersect(&shapes, &Ray::new(o, d)) else { continue };
             let Some(leaving) = it.leaving() else { continue };
-            assert_eq!((leaving.shape, leaving.segment), (1, it.prim));
-            for _ in 0..4 {
+            if it.shape == 2 {
+                assert!(matches!(leaving.instance, Some(3 | 4)), "instanced hit {:?}", leaving.instance);
+                instanced += 1;
+            } else {
+                assert_eq!((leaving.shape, leaving.segment, leaving.instance), (1, it.prim, None));
+            }
+            // Four rays spawned as the integrator does, and one from 1e-5 outside the surface
+            // heading into the fibre, as a ray would whose offset rounding put on the wrong
+            // side (self-hits through rounding alone are rare in instances, whose offsets
+            // also bound the transform's rounding).
+            let outward = if it.ng.dot(d) < 0.0 { it.ng } else { -it.ng };
+            for k in 0..5 {
                 let w = crate::math::square_to_uniform_sphere(glam::Vec2::new(
                     xorshift(&mut s),
                     xorshift(&mut s),
                 ));
-                let ray = it.spawn_ray(w);
+                let ray = match k {
+                    4 => Ray::new(it.p + outward * 1e-5, (w * 0.3 - outward).normalize()),
+                    _ => it.spawn_ray(w),
+                };
                 from_fibres += 1;
                 let full = accel.intersect(&shapes, &ray);
                 let skipped = accel
@@ -2337,23 +2368,38 @@ mod tests {
                 assert_eq!(accel.occluded_leaving(&shapes, &ray, Some(leaving)), skipped.is_some());
                 let on_left = |h: &Interaction| h.leaving() == Some(leaving);
                 assert!(!skipped.as_ref().is_some_and(on_left), "the skip returned the piece left");
+                let same_piece_elsewhere = |h: &Interaction| {
+                    h.leaving().is_some_and(|l| Leaving { instance: leaving.instance, ..l } == leaving)
+                };
+                if skipped.as_ref().is_some_and(same_piece_elsewhere) {
+                    other_copy += 1;
+                }
                 match &full {
                     Some(h) if on_left(h) => {
                         assert!(h.t < 1e-4, "a hit on the piece left at t {}", h.t);
                         self_hits += 1;
+                        instanced_self_hits += leaving.instance.is_some() as u32;
                     }
                     _ => assert_eq!(
-                        full.map(|h| (h.t, h.shape, h.prim)),
-                        skipped.map(|h| (h.t, h.shape, h.prim))
+                        full.map(|h| (h.t, h.shape, h.prim, h.instance)),
+                        skipped.map(|h| (h.t, h.shape, h.prim, h.instance))
                     ),
                 }
             }
         }
-        assert!(
-            from_fibres > 10_000 && instanced > 500,
-            "{from_fibres} rays from fibres, {instanced} instanced hits"
+        eprintln!(
+            "{from_fibres} rays from fibres ({instanced} hits in instances), {self_hits} would hit \
+             the piece they leave ({instanced_self_hits} in an instance), {other_copy} hit that \
+             piece in the other instance"
         );
-        eprintln!("{from_fibres} rays from fibres, {self_hits} would hit the piece they leave, {instanced} instanced hits");
+        assert!(
+            from_fibres > 10_000 && instanced > 500 && other_copy > 50,
+            "{from_fibres} rays from fibres, {instanced} instanced hits, {other_copy} on the other copy"
+        );
+        assert!(
+            self_hits > 100 && instanced_self_hits > 10,
+            "{self_hits} self-hits, {instanced_self_hits} in instances"
+        );
     }
 
     /// Transforms an instance may have: rotated, scaled unevenly, mirrored, far from the

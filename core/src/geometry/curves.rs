@@ -10,7 +10,7 @@
 //! So, as in Mitsuba, a ray leaving a fibre, even through its body, does not hit the fibre it
 //! starts in; where rounding puts its origin on the wrong side of the surface it could hit
 //! the piece it leaves right there, so the tree does not test that piece for it
-//! ([`crate::geometry::Leaving`]; not inside instances).
+//! ([`crate::geometry::Leaving`], inside instances too).
 
 use glam::{DVec3, Vec2, Vec3, Vec4};
 

@@ -37,9 +37,9 @@ impl Ray {
 
 /// A ray-surface intersection with everything shading needs.
 ///
-/// Aligned to 16 bytes (128 where it would take 120): the compiler writes a record with
-/// 16-byte stores where it can, and with the record on a 16-byte boundary those stores start
-/// at its fields' own boundaries, so that the integrator's reads of a field right after take
+/// Aligned to 16 bytes, 128 long: the compiler writes a record with 16-byte stores where it
+/// can, and with the record on a 16-byte boundary those stores start at its fields' own
+/// boundaries, so that the integrator's reads of a field right after take
 /// their values from the stores in flight (see `math::apart`). PGO build, 2 threads, medians
 /// of 5 interleaved, with the hit record made after the miss test: textured +6.1% in all
 /// (docs/BENCHMARKS.md, issue 15's seventeenth step); the other scenes within the spread.
@@ -60,11 +60,15 @@ pub struct Interaction {
     pub dpdv: Vec3,
     pub shape: u32,
     pub prim: u32,
-    /// The piece of the fibre segment hit (a hit on a fibre of the scene's own tree; `None`
-    /// for other surfaces and inside instances): rays spawned here skip it
-    /// ([`Interaction::leaving`]).
+    /// The piece of the fibre segment hit (`None` for other surfaces): rays spawned here skip
+    /// it ([`Interaction::leaving`]).
     pub piece: Option<curves::Piece>,
+    /// The instance whose placement of a group this hit is on (its shape index; `None` for a
+    /// hit on the scene's own shapes). `shape` and `prim` then name the group's member.
+    pub instance: Option<u32>,
 }
+
+const _: () = assert!(std::mem::size_of::<Interaction>() == 128, "the hit record grew past 128 bytes");
 
 /// A fibre piece that a ray leaves: the ray was spawned from a hit on it, and the tree's
 /// traversal does not test that piece again (see `Curves::intersect_exact`: all it could give
@@ -74,6 +78,9 @@ pub struct Leaving {
     pub shape: u32,
     pub segment: u32,
     pub piece: curves::Piece,
+    /// The instance that places the piece (its shape index), if it is in a group: the same
+    /// piece in another placement is another surface, and is tested.
+    pub instance: Option<u32>,
 }
 
 /// Offsets of the rays through the neighbouring pixel in x and in y (ray differentials).
@@ -87,7 +94,12 @@ impl Interaction {
     /// The fibre piece that rays spawned here leave, if this is a hit on one.
     #[inline]
     pub fn leaving(&self) -> Option<Leaving> {
-        self.piece.map(|piece| Leaving { shape: self.shape, segment: self.prim, piece })
+        self.piece.map(|piece| Leaving {
+            shape: self.shape,
+            segment: self.prim,
+            piece,
+            instance: self.instance,
+        })
     }
 
     /// The texture footprint at this hit of a ray with differentials `d`: where the offset rays

@@ -160,8 +160,9 @@ impl Instance {
     }
 
     /// An interaction found in the group's space, in the world: the point and its error bound,
-    /// normals (by the inverse transpose, normalised), tangents and the world distance `t`.
-    pub(crate) fn to_world(&self, it: &Interaction, t: f32) -> Interaction {
+    /// normals (by the inverse transpose, normalised), tangents and the world distance `t`;
+    /// `instance` is this instance's shape index.
+    pub(crate) fn to_world(&self, it: &Interaction, t: f32, instance: u32) -> Interaction {
         let (p, err) = transform_point_err(&self.to_world, it.p);
         let lin = abs_linear(&self.to_world);
         let p_err = err + lin * it.p_err * (1.0 + gamma(3));
@@ -170,8 +171,6 @@ impl Instance {
         let ns = (normals * it.frame.n).normalize();
         let dpdu = self.to_world.transform_vector3(it.dpdu);
         let dpdv = self.to_world.transform_vector3(it.dpdv);
-        // (A fibre piece inside an instance is not the piece of that index in the scene's
-        // tree: rays from it skip nothing.)
         Interaction {
             p,
             p_err,
@@ -180,7 +179,7 @@ impl Instance {
             frame: Frame::from_normal_tangent(ns, dpdu),
             dpdu,
             dpdv,
-            piece: None,
+            instance: Some(instance),
             ..*it
         }
     }
@@ -316,6 +315,7 @@ impl Shape {
                         shape,
                         prim: prim as u32,
                         piece: None,
+                        instance: None,
                     };
                 }
                 None => m.surface(prim, aux.x, aux.y),
@@ -369,6 +369,7 @@ impl Shape {
             shape,
             prim: prim as u32,
             piece,
+            instance: None,
         }
     }
 

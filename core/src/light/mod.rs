@@ -592,6 +592,7 @@ mod tests {
             shape: 0,
             prim: 0,
             piece: None,
+            instance: None,
         };
         for uniform in [false, true] {
             let mut env = EnvMap::new(bmp.clone(), 1.0, glam::Mat3::IDENTITY, FilterType::Nearest, false);
