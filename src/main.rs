@@ -66,8 +66,8 @@ struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Chunks rendered at once on those threads, 1 to 256 (default: half the threads, 4 to
-    /// 16). Does not change the image.
+    /// Chunks rendered at once on those threads, 1 to 256 (default: one a thread, 4 to 16).
+    /// Does not change the image.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
     slots: Option<u32>,
     /// Sample seed (default: the scene sampler's seed).
@@ -79,8 +79,9 @@ struct RenderArgs {
     /// With --plan: print it as JSON.
     #[arg(long, requires = "plan")]
     json: bool,
-    /// Tile size in pixels (does not change the image). The default is `furnace submit`'s; on
-    /// 8 and 16 threads it renders 2-10% faster than 32 (docs/BENCHMARKS.md, "Third run").
+    /// Tile size in pixels (does not change the image, except where a target error stops each
+    /// tile). The default is `furnace submit`'s; on 16 threads it rendered up to about 12%
+    /// faster than 32 (docs/BENCHMARKS.md, "Third run").
     #[arg(long, default_value_t = 64)]
     tile: u32,
     /// Stop each tile once its estimated relative error is at most this (--spp is then the
@@ -263,17 +264,19 @@ fn render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// Chunks in flight for a render in this process on `threads` threads: the farm worker's
-/// default ([`furnace_worker::auto_slots`], half the threads, 2 to 16), but at least 4. On a
-/// machine this busy the chunk threads, which merge, hand over and lease between chunks, wait
-/// for a core; with only two chunks in flight the pool's threads can run out of bands. On this
-/// 2-core VM, 2 threads, 64 spp, medians of 7 interleaved runs, 4 against 2: textured -0.5% to
-/// +3.6%, envmap +2.1% to +4.4%, thinlens +2.7% to +2.8% (plain and profile-guided builds;
-/// docs/BENCHMARKS.md, issue 15's sixteenth step). A farm worker keeps 2 on so few threads:
-/// there, extra chunks in flight would be held from idle workers at a job's end; here there is
-/// no other worker.
+/// Chunks in flight for a render in this process on `threads` threads: one a thread, 4 to
+/// 16 ([`furnace_worker::MAX_AUTO_SLOTS`]); a farm worker keeps half its threads
+/// ([`furnace_worker::auto_slots`]), because there extra chunks in flight would be held from
+/// idle workers at a job's end; here there is no other worker. On a 2-core machine the chunk
+/// threads, which merge, hand over and lease between chunks, wait for a core, and with only two
+/// chunks in flight the pool's threads can run out of bands: 2 threads, 64 spp, medians of 7
+/// interleaved runs, 4 against 2: textured -0.5% to +3.6%, envmap +2.1% to +4.4%, thinlens
+/// +2.7% to +2.8%. On 16 cores (docs/BENCHMARKS.md, "Multi-core scaling"): 8 threads, 8
+/// against 4, cbox +11%, textured +3%, whimsical +3%, hair within the spread; 16 threads, 16
+/// against 8, +1% (thinlens) to +14% (cbox), medians of 3 on a noisy machine ("Chunks in
+/// flight, and malloc").
 pub fn local_slots(threads: usize) -> usize {
-    furnace_worker::auto_slots(threads).max(4)
+    threads.clamp(4, furnace_worker::MAX_AUTO_SLOTS)
 }
 
 /// Renders on this machine through the farm in one process: a coordinator that stores nothing

@@ -83,7 +83,7 @@ pub fn run(cfg: WorkerConfig) -> Result<u64, WorkerError> {
 }
 
 /// Chunks in flight for `threads` render threads: half the threads, at least 2 and at most
-/// [`MAX_AUTO_SLOTS`]. A chunk is rendered in bands of two rows (16 for a 32-pixel tile); with
+/// [`MAX_AUTO_SLOTS`]. A chunk is rendered in bands of two rows (32 for a 64-pixel tile); with
 /// too few chunks in flight, the threads that finish their bands wait for a chunk's last band
 /// and its upload before the next chunk brings work. Measured on 16 cores
 /// (docs/BENCHMARKS.md, "Multi-core scaling"): at 16 threads, 8 chunks render 16 to 31% more
