@@ -33,16 +33,21 @@ fn render_writes_exr_and_png() {
 }
 
 /// `furnace render` runs the farm in one process (a coordinator and a worker with several
-/// chunks in flight); neither threads, chunks in flight nor tile size change a bit of the image,
-/// which equals the library's plain render loop.
+/// chunks in flight: by default one a thread, 4 to 16); neither threads, chunks in flight nor
+/// tile size change a bit of the image, which equals the library's plain render loop.
 #[test]
 fn render_through_the_in_process_farm_equals_the_plain_render_loop() {
     let dir = scratch("cli-one-path");
     let scene = load("small.xml", &[("width", "24")]);
     let expect = render(&scene, 70, 9).0.develop();
-    for (threads, slots, tile) in
-        [("1", None, "8"), ("2", None, "32"), ("3", Some("1"), "5"), ("2", Some("9"), "7")]
-    {
+    for (threads, slots, tile) in [
+        ("1", None, "8"),
+        ("2", None, "32"),
+        ("3", Some("1"), "5"),
+        ("2", Some("9"), "7"),
+        ("6", None, "16"),
+        ("20", None, "64"),
+    ] {
         let out = dir.join(format!("t{threads}-{tile}.exr"));
         let mut cmd = furnace();
         cmd.args(["render", "--spp", "70", "--seed", "9", "-D", "width=24", "--threads", threads]);
@@ -52,7 +57,12 @@ fn render_through_the_in_process_farm_equals_the_plain_render_loop() {
         let o = cmd.args(["--tile", tile, "-o"]).arg(&out).arg(scenes().join("small.xml")).output().unwrap();
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert!(o.status.success(), "{stderr}");
-        let in_flight = format!("(up to {} chunks in flight)", slots.unwrap_or("4"));
+        let default = match threads {
+            "6" => "6",
+            "20" => "16",
+            _ => "4",
+        };
+        let in_flight = format!("(up to {} chunks in flight)", slots.unwrap_or(default));
         assert!(stderr.contains(&in_flight), "expected {in_flight} in {stderr}");
         let img = Image::read_exr(&out).unwrap();
         assert!(
