@@ -754,7 +754,7 @@ mod tests {
             let (p, p_err, _) = seg.surface(o, d0, &hit);
             let n = seg.normal(hit.piece, p);
             for _ in 0..4 {
-                let w = square_to_uniform_sphere_for_test(rnd(), rnd());
+                let w = crate::math::square_to_uniform_sphere(glam::Vec2::new(rnd(), rnd()));
                 let ro = crate::math::offset_ray_origin(p, p_err, n, w);
                 leaving_rays += 1;
                 let full = closest(ro, w, None);
@@ -800,10 +800,6 @@ mod tests {
             state ^= state << 5;
             state as f32 / u32::MAX as f32
         }
-    }
-
-    fn square_to_uniform_sphere_for_test(u: f32, v: f32) -> Vec3 {
-        crate::math::square_to_uniform_sphere(glam::Vec2::new(u, v))
     }
 
     /// The f32 pre-test never rejects a ray that the exact test hits: rays aimed near

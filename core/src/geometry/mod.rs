@@ -39,8 +39,8 @@ impl Ray {
 ///
 /// Aligned to 16 bytes, 128 long: the compiler writes a record with 16-byte stores where it
 /// can, and with the record on a 16-byte boundary those stores start at its fields' own
-/// boundaries, so that the integrator's reads of a field right after take
-/// their values from the stores in flight (see `math::apart`). PGO build, 2 threads, medians
+/// boundaries, so that the integrator's reads of a field right after take their values from
+/// the stores in flight (see `math::apart`). PGO build, 2 threads, medians
 /// of 5 interleaved, with the hit record made after the miss test: textured +6.1% in all
 /// (docs/BENCHMARKS.md, issue 15's seventeenth step); the other scenes within the spread.
 #[derive(Clone, Copy, Debug)]
@@ -68,7 +68,7 @@ pub struct Interaction {
     pub instance: Option<u32>,
 }
 
-const _: () = assert!(std::mem::size_of::<Interaction>() == 128, "the hit record grew past 128 bytes");
+const _: () = assert!(std::mem::size_of::<Interaction>() == 128, "the hit record is no longer 128 bytes");
 
 /// A fibre piece that a ray leaves: the ray was spawned from a hit on it, and the tree's
 /// traversal does not test that piece again (see `Curves::intersect_exact`: all it could give
