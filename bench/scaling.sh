@@ -23,7 +23,7 @@ TMP="$(mktemp -d)"; PIDS=()
 trap 'kill ${PIDS[@]+"${PIDS[@]}"} 2>/dev/null || true; rm -rf "$TMP"' EXIT
 cd "$ROOT"
 echo "cpu: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores"
-"$F" render tests/scenes/cbox.xml --spp 1 --threads 1 -o "$TMP/x.exr" 2>&1 | grep -m1 -o 'Sobol sets.*' || true
+"$F" render tests/scenes/cbox.xml --spp 1 --threads 1 -o "$TMP/x.exr" 2>&1 | grep -m1 -o 'built for.*' || true
 
 rate() { sed -n 's/.*: \([0-9.]*\) Msamples\/s.*/\1/p'; }
 MITSUBA="${MITSUBA:-}"; MPY="${MITSUBA_PY:-$ROOT/bench/peers/py.sh}"

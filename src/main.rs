@@ -106,6 +106,18 @@ fn finite_stops(s: &str) -> Result<f32, String> {
 }
 
 fn main() {
+    // Before anything else: a build for x86-64-v2 (.cargo/config.toml) would otherwise stop
+    // with an illegal instruction on a CPU without those.
+    let missing = furnace_core::cpu::missing();
+    if !missing.is_empty() {
+        eprintln!(
+            "error: this furnace was built for {} and this CPU lacks {}; build it for this CPU with \
+             RUSTFLAGS=\"-C target-cpu=native\" cargo build --release (or target-cpu=x86-64 for any x86-64)",
+            furnace_core::cpu::build_target(),
+            missing.join(", ")
+        );
+        std::process::exit(1);
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -182,12 +194,13 @@ fn render(a: RenderArgs) -> Result<()> {
         String::new()
     };
     tracing::info!(
-        "loaded {} in {:.2}s: {} shapes, {} primitives{instanced}, {} lights; Sobol sets in {}; tracing with an {}",
+        "loaded {} in {:.2}s: {} shapes, {} primitives{instanced}, {} lights; built for {}; Sobol sets in {}; tracing with an {}",
         a.scene.display(),
         t0.elapsed().as_secs_f64(),
         scene.shapes.len(),
         scene.accel.prim_count(),
         scene.lights.len(),
+        furnace_core::cpu::build_target(),
         furnace_core::sampler::instruction_set(),
         scene.accel.kernel().name()
     );

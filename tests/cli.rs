@@ -24,6 +24,9 @@ fn render_writes_exr_and_png() {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
     assert!(stderr.contains("thin lens") && stderr.contains("Msamples/s"), "{stderr}");
+    // What the binary was compiled for is logged with the kernels chosen at run time.
+    let built_for = format!("built for {}; Sobol sets in", furnace_core::cpu::build_target());
+    assert!(stderr.contains(&built_for), "expected {built_for} in {stderr}");
     let img = Image::read_exr(&out).unwrap();
     assert_eq!((img.width, img.height), (24, 40));
     assert!(img.mean_luminance() > 0.05);

@@ -5,6 +5,7 @@
 
 pub mod bsdf;
 pub mod camera;
+pub mod cpu;
 pub mod film;
 pub mod geometry;
 pub mod image_io;
