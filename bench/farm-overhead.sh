@@ -7,5 +7,5 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 SCENE="${1:-$ROOT/tests/scenes/cbox.xml}"; SPP="${2:-64}"; TILE="${3:-64}"; CHUNK="${4:-64}"
-cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml"
+(cd "$ROOT" && cargo build --release --quiet)   # in the repository, for its .cargo/config.toml
 SCENES="" FARM="$(realpath "$SCENE"):$SPP:$TILE:$CHUNK" exec "$ROOT/bench/scaling.sh" "$ROOT/target/release/furnace" 2 1

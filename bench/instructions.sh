@@ -13,7 +13,7 @@ ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 command -v valgrind >/dev/null || { echo "valgrind is not installed (apt-get install valgrind)" >&2; exit 1; }
 BINS=("$@")
 if [ ${#BINS[@]} -eq 0 ]; then
-    cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml"
+    (cd "$ROOT" && cargo build --release --quiet)   # in the repository, for its .cargo/config.toml
     BINS=("$ROOT/target/release/furnace")
 fi
 SCENES=${SCENES:-"$ROOT/tests/scenes/cbox.xml:2 $ROOT/tests/scenes/textured.xml:4 $ROOT/tests/scenes/envmap.xml:4 $ROOT/tests/scenes/thinlens.xml:4 $ROOT/tests/scenes/hair.xml:2 $ROOT/examples/whimsical.xml:1"}

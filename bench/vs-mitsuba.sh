@@ -36,7 +36,7 @@ if [ -z "${FURNACE:-}" ] && [ -n "${PGO:-}" ]; then   # PGO=1: the profile-guide
     FURNACE="$ROOT/target/pgo/furnace"
 fi
 if [ -z "${FURNACE:-}" ]; then   # FURNACE=path/to/furnace measures that binary instead
-    cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml"
+    (cd "$ROOT" && cargo build --release --quiet)   # in the repository, for its .cargo/config.toml
     FURNACE="$ROOT/target/release/furnace"
 fi
 

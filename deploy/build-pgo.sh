@@ -18,8 +18,8 @@
 # 7 minutes on 2 cores. Exit 0: OUT is built and checked. Measured in docs/BENCHMARKS.md
 # ("Issue 15, tenth step"). The profile flags go to the target's crates only (--target), not
 # to build scripts and procedural macros. RUSTFLAGS, if set, is added to them; otherwise the
-# target CPU of .cargo/config.toml is (cargo ignores the config when flags come from the
-# environment), so that the profile-guided binary is built as the plain one is.
+# x86-64 rustflags of .cargo/config.toml are (cargo ignores the config when flags come from
+# the environment), so that the profile-guided binary is built as the plain one is.
 set -euo pipefail
 out=$(realpath -m "${1:-$(dirname "$0")/../target/pgo/furnace}")
 cd "$(dirname "$0")/.."
@@ -36,23 +36,28 @@ if [ ! -x "$profdata" ]; then
 fi
 [ -x "$profdata" ] || fail "no llvm-profdata at $profdata"
 
-# The target CPU that .cargo/config.toml builds x86-64 for (x86-64-v2): cargo ignores the
-# config's rustflags when flags come from the environment, as they do here, so it is added.
+# The flags that .cargo/config.toml gives x86-64 builds (x86-64-v2): cargo ignores the
+# config's rustflags when flags come from the environment, as they do here, so they are added.
 cpu=()
 case "$host" in
 x86_64-*)
-    level=$(sed -n 's/^rustflags = \["-C", "target-cpu=\([a-z0-9-]*\)"\]$/\1/p' .cargo/config.toml)
-    [ -n "$level" ] || fail "no target-cpu in .cargo/config.toml"
-    cpu=("-Ctarget-cpu=$level")
+    words=$(python3 -c 'import tomllib
+config = tomllib.load(open(".cargo/config.toml", "rb"))
+print("\n".join(config["target"]["cfg(target_arch = \"x86_64\")"]["rustflags"]))') \
+        || fail "no x86-64 rustflags in .cargo/config.toml"
+    mapfile -t cpu <<<"$words"
     ;;
 esac
 
-# RUSTFLAGS' words (or else the config's target CPU) and one more flag, as cargo's
-# unit-separated list (paths may hold spaces).
+# RUSTFLAGS' words (or, where RUSTFLAGS is not set at all, the config's) and one more flag,
+# as cargo's unit-separated list (paths may hold spaces).
 flags() {
     local words=() joined
-    read -ra words <<<"${RUSTFLAGS:-}"
-    [ -n "${RUSTFLAGS:-}" ] || words=("${cpu[@]}")
+    if [ -n "${RUSTFLAGS+set}" ]; then
+        read -ra words <<<"$RUSTFLAGS"
+    else
+        words=(${cpu[@]+"${cpu[@]}"})
+    fi
     words+=("$1")
     joined=$(printf '%s\x1f' "${words[@]}")
     printf '%s' "${joined%$'\x1f'}"
