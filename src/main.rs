@@ -106,17 +106,10 @@ fn finite_stops(s: &str) -> Result<f32, String> {
 }
 
 fn main() {
-    // Before anything else: a build for x86-64-v2 (.cargo/config.toml) would otherwise stop
-    // with an illegal instruction on a CPU without those.
-    let missing = furnace_core::cpu::missing();
-    if !missing.is_empty() {
-        eprintln!(
-            "error: this furnace was built for {} and this CPU lacks {}; build it for this CPU with \
-             RUSTFLAGS=\"-C target-cpu=native\" cargo build --release (or target-cpu=x86-64 for any x86-64)",
-            furnace_core::cpu::build_target(),
-            missing.join(", ")
-        );
-        std::process::exit(1);
+    // Before anything else: a build for x86-64-v2 (.cargo/config.toml), or for this very CPU,
+    // would otherwise stop with an illegal instruction on a CPU without those.
+    if !furnace_core::cpu::supported() {
+        furnace_core::cpu::refuse();
     }
     tracing_subscriber::fmt()
         .with_env_filter(

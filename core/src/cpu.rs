@@ -8,50 +8,190 @@
 //! it did (docs/BENCHMARKS.md, "Issue 15, nineteenth step"). The floating-point operations
 //! are the same (no contraction into FMA, the same roundings), so such a build renders the
 //! baseline build's bytes. A CPU without these instructions would stop at the first one;
-//! [`missing`] lets the binary say so before.
+//! [`supported`] and [`refuse`] let the binary say so before. They know the features of
+//! x86-64-v2, v3 and v4; a build for one CPU (`target-cpu=native`) may assume more.
 
-/// Each x86 feature this build was compiled to assume (a `target_feature` on at compile time,
-/// beyond x86-64's SSE2, among those that `cfg!` reports on stable Rust: x86-64-v2's LAHF/SAHF
-/// is not, and every CPU with SSSE3 has it) and whether this CPU has it. (Not `is_x86_feature_detected!`: for a
-/// feature enabled at compile time it answers true without asking the CPU.)
+/// One x86 feature: its name, where CPUID reports it, and whether the OS must also save the
+/// AVX (`Os::Ymm`) or AVX-512 (`Os::Zmm`) registers for it.
 #[cfg(target_arch = "x86_64")]
-fn assumed() -> Vec<(&'static str, bool)> {
-    let cpu = Cpuid::read();
-    let mut out = Vec::new();
-    macro_rules! check {
-        ($($f:tt),*) => {$(
-            if cfg!(target_feature = $f) {
-                out.push(($f, cpu.has($f)));
-            }
-        )*};
-    }
-    check!(
-        "sse3",
-        "ssse3",
-        "sse4.1",
-        "sse4.2",
-        "popcnt",
-        "cmpxchg16b",
-        "avx",
-        "avx2",
-        "fma",
-        "bmi1",
-        "bmi2",
-        "lzcnt",
-        "movbe",
-        "f16c",
-        "avx512f",
-        "avx512bw",
-        "avx512cd",
-        "avx512dq",
-        "avx512vl"
-    );
-    out
+#[derive(Clone, Copy)]
+struct Feature {
+    name: &'static str,
+    reg: Reg,
+    bit: u32,
+    os: Os,
+    /// Whether this build was compiled to assume it (`target_feature` on at compile time).
+    assumed: bool,
 }
 
-/// The CPUID bits that say which of those features this CPU has, and whether the operating
-/// system saves the AVX and AVX-512 registers (XCR0).
+/// A CPUID register: leaf 1 ECX, leaf 7 (subleaf 0) EBX, leaf 0x8000_0001 ECX.
 #[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Reg {
+    Ecx1,
+    Ebx7,
+    EcxExt,
+}
+
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Os {
+    None,
+    Ymm,
+    Zmm,
+}
+
+/// Invokes macro `$m` with every x86 feature this module checks (beyond x86-64's SSE2, among
+/// those that `cfg!` reports on stable Rust: x86-64-v2's LAHF/SAHF is not, and every CPU with
+/// SSSE3 has it), as `name reg bit os` tuples.
+#[cfg(target_arch = "x86_64")]
+macro_rules! x86_features {
+    ($m:ident) => {
+        $m!(
+            ("sse3", Ecx1, 0, None),
+            ("ssse3", Ecx1, 9, None),
+            ("sse4.1", Ecx1, 19, None),
+            ("sse4.2", Ecx1, 20, None),
+            ("popcnt", Ecx1, 23, None),
+            ("cmpxchg16b", Ecx1, 13, None),
+            ("avx", Ecx1, 28, Ymm),
+            ("avx2", Ebx7, 5, Ymm),
+            ("fma", Ecx1, 12, Ymm),
+            ("bmi1", Ebx7, 3, None),
+            ("bmi2", Ebx7, 8, None),
+            ("lzcnt", EcxExt, 5, None),
+            ("movbe", Ecx1, 22, None),
+            ("f16c", Ecx1, 29, Ymm),
+            ("avx512f", Ebx7, 16, Zmm),
+            ("avx512bw", Ebx7, 30, Zmm),
+            ("avx512cd", Ebx7, 28, Zmm),
+            ("avx512dq", Ebx7, 17, Zmm),
+            ("avx512vl", Ebx7, 31, Zmm)
+        )
+    };
+}
+
+#[cfg(target_arch = "x86_64")]
+macro_rules! feature_table {
+    ($(($f:tt, $r:ident, $b:expr, $o:ident)),*) => {
+        [$(Feature { name: $f, reg: Reg::$r, bit: $b, os: Os::$o, assumed: cfg!(target_feature = $f) }),*]
+    };
+}
+
+#[cfg(target_arch = "x86_64")]
+const FEATURES: [Feature; 19] = x86_features!(feature_table);
+
+/// The CPUID bits (and OS register state) that this build assumes, from [`FEATURES`].
+#[cfg(target_arch = "x86_64")]
+const REQUIRED: Cpuid = {
+    let mut r = Cpuid { ecx1: 0, ebx7: 0, ecx_ext: 0, ymm: false, zmm: false };
+    let mut i = 0;
+    while i < FEATURES.len() {
+        let f = FEATURES[i];
+        if f.assumed {
+            match f.reg {
+                Reg::Ecx1 => r.ecx1 |= 1 << f.bit,
+                Reg::Ebx7 => r.ebx7 |= 1 << f.bit,
+                Reg::EcxExt => r.ecx_ext |= 1 << f.bit,
+            }
+            r.ymm |= matches!(f.os, Os::Ymm | Os::Zmm);
+            r.zmm |= matches!(f.os, Os::Zmm);
+        }
+        i += 1;
+    }
+    r
+};
+
+/// Whether this CPU runs every instruction this build was compiled to assume. Integer work
+/// on CPUID's registers only: it runs before `main` does anything else, and on a CPU without
+/// those instructions it must not use them itself (with AVX assumed, the compiler writes even
+/// plain copies of 16 bytes in AVX).
+#[inline(never)]
+pub fn supported() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return supported_by(&Cpuid::read());
+    #[cfg(not(target_arch = "x86_64"))]
+    true
+}
+
+/// [`supported`] on the CPU that `c` describes.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn supported_by(c: &Cpuid) -> bool {
+    let r = REQUIRED;
+    c.ecx1 & r.ecx1 == r.ecx1
+        && c.ebx7 & r.ebx7 == r.ebx7
+        && c.ecx_ext & r.ecx_ext == r.ecx_ext
+        && (c.ymm || !r.ymm)
+        && (c.zmm || !r.zmm)
+}
+
+/// What a binary says, and does, on a CPU that is not [`supported`]: a fixed message (no
+/// formatting, which could use the instructions that are missing) and exit status 1.
+#[cold]
+#[inline(never)]
+pub fn refuse() -> ! {
+    use std::io::Write;
+    let mut err = std::io::stderr();
+    let _ = err.write_all(b"error: this furnace was built for ");
+    let _ = err.write_all(BUILD_LEVEL.as_bytes());
+    let _ = err.write_all(
+        b" and this CPU lacks some of those instructions; build it for this CPU with \
+          RUSTFLAGS=\"-C target-cpu=native\" cargo build --release (or target-cpu=x86-64 for any x86-64)\n",
+    );
+    std::process::exit(1)
+}
+
+const V2: bool = cfg!(all(
+    target_feature = "sse3",
+    target_feature = "ssse3",
+    target_feature = "sse4.1",
+    target_feature = "sse4.2",
+    target_feature = "popcnt"
+));
+const V3: bool = V2
+    && cfg!(all(
+        target_feature = "avx",
+        target_feature = "avx2",
+        target_feature = "fma",
+        target_feature = "bmi1",
+        target_feature = "bmi2",
+        target_feature = "lzcnt",
+        target_feature = "movbe",
+        target_feature = "f16c"
+    ));
+const V4: bool = V3
+    && cfg!(all(
+        target_feature = "avx512f",
+        target_feature = "avx512bw",
+        target_feature = "avx512cd",
+        target_feature = "avx512dq",
+        target_feature = "avx512vl"
+    ));
+
+/// [`build_target`]'s level, fixed at compile time.
+const BUILD_LEVEL: &str = if cfg!(not(target_arch = "x86_64")) {
+    std::env::consts::ARCH
+} else if V4 {
+    "x86-64-v4"
+} else if V3 {
+    "x86-64-v3"
+} else if V2 {
+    "x86-64-v2"
+} else {
+    "x86-64"
+};
+
+/// Each x86 feature this build was compiled to assume and whether the CPU `c` describes has it.
+#[cfg(target_arch = "x86_64")]
+fn assumed(c: &Cpuid) -> Vec<(&'static str, bool)> {
+    FEATURES.iter().filter(|f| f.assumed).map(|f| (f.name, c.has(f.name))).collect()
+}
+
+/// The CPUID bits that say which features this CPU has, and whether the operating system
+/// saves the AVX and AVX-512 registers (XCR0).
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
 struct Cpuid {
     ecx1: u32,
     ebx7: u32,
@@ -62,6 +202,7 @@ struct Cpuid {
 
 #[cfg(target_arch = "x86_64")]
 impl Cpuid {
+    #[inline(always)]
     fn read() -> Cpuid {
         use std::arch::x86_64::{__cpuid, __cpuid_count};
         // SAFETY: CPUID exists on every x86-64 CPU; leaves past the maximum are not read.
@@ -90,39 +231,28 @@ impl Cpuid {
         Cpuid { ecx1, ebx7, ecx_ext, ymm: xcr0 & 0b110 == 0b110, zmm: xcr0 & 0b1110_0110 == 0b1110_0110 }
     }
 
-    /// Whether the CPU (and for AVX and AVX-512, the OS) runs feature `f`.
+    /// Whether the CPU (and for AVX and AVX-512, the OS) runs feature `f` of [`FEATURES`].
     fn has(&self, f: &str) -> bool {
-        let bit = |r: u32, b: u32| r >> b & 1 != 0;
-        let (c, b) = (self.ecx1, self.ebx7);
-        match f {
-            "sse3" => bit(c, 0),
-            "ssse3" => bit(c, 9),
-            "fma" => bit(c, 12) && self.ymm,
-            "cmpxchg16b" => bit(c, 13),
-            "sse4.1" => bit(c, 19),
-            "sse4.2" => bit(c, 20),
-            "movbe" => bit(c, 22),
-            "popcnt" => bit(c, 23),
-            "avx" => bit(c, 28) && self.ymm,
-            "f16c" => bit(c, 29) && self.ymm,
-            "bmi1" => bit(b, 3),
-            "avx2" => bit(b, 5) && self.ymm,
-            "bmi2" => bit(b, 8),
-            "avx512f" => bit(b, 16) && self.zmm,
-            "avx512dq" => bit(b, 17) && self.zmm,
-            "avx512cd" => bit(b, 28) && self.zmm,
-            "avx512bw" => bit(b, 30) && self.zmm,
-            "avx512vl" => bit(b, 31) && self.zmm,
-            "lzcnt" => bit(self.ecx_ext, 5),
-            _ => false,
-        }
+        FEATURES.iter().find(|g| g.name == f).is_some_and(|g| {
+            let r = match g.reg {
+                Reg::Ecx1 => self.ecx1,
+                Reg::Ebx7 => self.ebx7,
+                Reg::EcxExt => self.ecx_ext,
+            };
+            let os = match g.os {
+                Os::None => true,
+                Os::Ymm => self.ymm,
+                Os::Zmm => self.zmm,
+            };
+            r >> g.bit & 1 != 0 && os
+        })
     }
 }
 
 /// The compile-time features this CPU lacks (none where the binary runs here).
 pub fn missing() -> Vec<&'static str> {
     #[cfg(target_arch = "x86_64")]
-    return assumed().into_iter().filter(|&(_, has)| !has).map(|(f, _)| f).collect();
+    return assumed(&Cpuid::read()).into_iter().filter(|&(_, has)| !has).map(|(f, _)| f).collect();
     #[cfg(not(target_arch = "x86_64"))]
     Vec::new()
 }
@@ -132,28 +262,13 @@ pub fn missing() -> Vec<&'static str> {
 /// features it assumes, or the architecture elsewhere.
 pub fn build_target() -> String {
     #[cfg(target_arch = "x86_64")]
-    {
-        let has = |f: &str| assumed().iter().any(|&(g, _)| g == f);
-        let v2 = ["sse3", "ssse3", "sse4.1", "sse4.2", "popcnt"].iter().all(|f| has(f));
-        let v3 =
-            v2 && ["avx", "avx2", "fma", "bmi1", "bmi2", "lzcnt", "movbe", "f16c"].iter().all(|f| has(f));
-        let v4 = v3 && ["avx512f", "avx512bw", "avx512cd", "avx512dq", "avx512vl"].iter().all(|f| has(f));
-        match (v4, v3, v2) {
-            (true, _, _) => "x86-64-v4".into(),
-            (_, true, _) => "x86-64-v3".into(),
-            (_, _, true) => "x86-64-v2".into(),
-            _ => {
-                let extra: Vec<_> = assumed().into_iter().map(|(f, _)| f).collect();
-                if extra.is_empty() {
-                    "x86-64".into()
-                } else {
-                    format!("x86-64 with {}", extra.join(", "))
-                }
-            }
+    if !V2 {
+        let extra: Vec<_> = FEATURES.iter().filter(|f| f.assumed).map(|f| f.name).collect();
+        if !extra.is_empty() {
+            return format!("x86-64 with {}", extra.join(", "));
         }
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    std::env::consts::ARCH.into()
+    BUILD_LEVEL.into()
 }
 
 #[cfg(test)]
@@ -166,19 +281,35 @@ mod tests {
     #[test]
     #[cfg(target_arch = "x86_64")]
     fn this_cpu_runs_what_the_build_assumes() {
-        assert!(missing().is_empty(), "this CPU lacks {:?}", missing());
-        let v2 = cfg!(all(
-            target_feature = "sse3",
-            target_feature = "ssse3",
-            target_feature = "sse4.1",
-            target_feature = "sse4.2",
-            target_feature = "popcnt"
-        ));
-        let avx = cfg!(target_feature = "avx");
-        match (v2, avx) {
+        assert!(supported() && missing().is_empty(), "this CPU lacks {:?}", missing());
+        match (V2, cfg!(target_feature = "avx")) {
             (true, false) => assert_eq!(build_target(), "x86-64-v2"),
             (false, false) if !cfg!(target_feature = "sse3") => assert_eq!(build_target(), "x86-64"),
             _ => assert!(build_target().starts_with("x86-64"), "{}", build_target()),
+        }
+    }
+
+    /// Each assumed feature taken from this CPU's CPUID (its bit cleared, or for AVX and
+    /// AVX-512 the OS's register state) makes the CPU unsupported, and is the one missing.
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn a_cpu_without_an_assumed_feature_is_refused() {
+        let real = Cpuid::read();
+        assert!(supported_by(&real));
+        for f in FEATURES.iter().filter(|f| f.assumed) {
+            let mut c = real;
+            match f.reg {
+                Reg::Ecx1 => c.ecx1 &= !(1 << f.bit),
+                Reg::Ebx7 => c.ebx7 &= !(1 << f.bit),
+                Reg::EcxExt => c.ecx_ext &= !(1 << f.bit),
+            }
+            let lacks: Vec<_> = assumed(&c).into_iter().filter(|&(_, has)| !has).map(|(g, _)| g).collect();
+            assert!(!supported_by(&c) && lacks == [f.name], "{}: {lacks:?}", f.name);
+            if f.os != Os::None {
+                let mut c = real;
+                c.ymm = false;
+                assert!(!supported_by(&c), "{} without the OS's AVX state", f.name);
+            }
         }
     }
 
@@ -189,36 +320,16 @@ mod tests {
     fn cpuid_agrees_with_runtime_detection() {
         let cpu = Cpuid::read();
         macro_rules! agree {
-            ($($f:tt),*) => {$(
+            ($(($f:tt, $r:ident, $b:expr, $o:ident)),*) => {$(
                 if !cfg!(target_feature = $f) {
                     assert_eq!(cpu.has($f), std::is_x86_feature_detected!($f), "{}", $f);
                 }
             )*};
         }
-        agree!(
-            "sse3",
-            "ssse3",
-            "sse4.1",
-            "sse4.2",
-            "popcnt",
-            "cmpxchg16b",
-            "avx",
-            "avx2",
-            "fma",
-            "bmi1",
-            "bmi2",
-            "lzcnt",
-            "movbe",
-            "f16c",
-            "avx512f",
-            "avx512bw",
-            "avx512cd",
-            "avx512dq",
-            "avx512vl"
-        );
+        x86_features!(agree);
         // And where the build assumes a feature, CPUID must say this CPU has it.
-        for (f, has) in assumed() {
-            assert!(has && cpu.has(f), "{f}");
+        for (f, has) in assumed(&cpu) {
+            assert!(has, "{f}");
         }
     }
 }
