@@ -106,11 +106,17 @@ fn finite_stops(s: &str) -> Result<f32, String> {
 }
 
 fn main() {
-    // Before anything else: a build for x86-64-v2 (.cargo/config.toml), or for this very CPU,
-    // would otherwise stop with an illegal instruction on a CPU without those.
+    // Before anything else: a build for x86-64-v2 (.cargo/config.toml) would otherwise stop
+    // with an illegal instruction on a CPU without those. The rest is a function of its own,
+    // so that none of its code (compiled with those instructions) is scheduled before this.
     if !furnace_core::cpu::supported() {
         furnace_core::cpu::refuse();
     }
+    main_checked();
+}
+
+#[inline(never)]
+fn main_checked() {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()

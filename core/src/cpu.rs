@@ -4,12 +4,13 @@
 //! SSE4.2, POPCNT, CMPXCHG16B: Intel Core since Nehalem, 2008, Atom since 2013; AMD since
 //! Bulldozer, 2011) instead of the 2003 baseline (SSE2): the whole renderer, not only the
 //! kernels chosen at run time, may then use SSE4.1's rounding, blends and shuffles. A plain
-//! release build renders 2-15% more samples a second; a profile-guided one within 1% of what
-//! it did (docs/BENCHMARKS.md, "Issue 15, nineteenth step"). The floating-point operations
+//! release build renders 2-15% more samples a second; a profile-guided one -0.6% to +1.2%
+//! of what it did (docs/BENCHMARKS.md, "Issue 15, nineteenth step"). The floating-point operations
 //! are the same (no contraction into FMA, the same roundings), so such a build renders the
 //! baseline build's bytes. A CPU without these instructions would stop at the first one;
 //! [`supported`] and [`refuse`] let the binary say so before. They know the features of
-//! x86-64-v2, v3 and v4; a build for one CPU (`target-cpu=native`) may assume more.
+//! x86-64-v2, v3 and v4; a build for one CPU (`target-cpu=native`) may assume more, and
+//! toolchains before Rust 1.89 do not report AVX-512 to `cfg!`.
 
 /// One x86 feature: its name, where CPUID reports it, and whether the OS must also save the
 /// AVX (`Os::Ymm`) or AVX-512 (`Os::Zmm`) registers for it.
@@ -228,7 +229,8 @@ impl Cpuid {
         } else {
             0
         };
-        Cpuid { ecx1, ebx7, ecx_ext, ymm: xcr0 & 0b110 == 0b110, zmm: xcr0 & 0b1110_0110 == 0b1110_0110 }
+        let (ymm, zmm) = os_saves(xcr0);
+        Cpuid { ecx1, ebx7, ecx_ext, ymm, zmm }
     }
 
     /// Whether the CPU (and for AVX and AVX-512, the OS) runs feature `f` of [`FEATURES`].
@@ -247,6 +249,14 @@ impl Cpuid {
             r >> g.bit & 1 != 0 && os
         })
     }
+}
+
+/// Whether the OS saves the AVX registers (XCR0 bits 1 and 2: SSE and AVX state) and the
+/// AVX-512 ones as well (bits 5, 6 and 7: opmask, upper halves of ZMM0-15, ZMM16-31).
+#[cfg(target_arch = "x86_64")]
+fn os_saves(xcr0: u32) -> (bool, bool) {
+    let ymm = xcr0 & 0b110 == 0b110;
+    (ymm, ymm && xcr0 & 0b1110_0000 == 0b1110_0000)
 }
 
 /// The compile-time features this CPU lacks (none where the binary runs here).
@@ -271,7 +281,7 @@ pub fn build_target() -> String {
     BUILD_LEVEL.into()
 }
 
-#[cfg(test)]
+#[cfg(all(test, target_arch = "x86_64"))]
 mod tests {
     use super::*;
 
@@ -279,7 +289,6 @@ mod tests {
     /// features it assumes (x86-64-v2 under the repository's `.cargo/config.toml`; a
     /// `RUSTFLAGS` of one's own replaces that config, and names another level).
     #[test]
-    #[cfg(target_arch = "x86_64")]
     fn this_cpu_runs_what_the_build_assumes() {
         assert!(supported() && missing().is_empty(), "this CPU lacks {:?}", missing());
         match (V2, cfg!(target_feature = "avx")) {
@@ -292,7 +301,6 @@ mod tests {
     /// Each assumed feature taken from this CPU's CPUID (its bit cleared, or for AVX and
     /// AVX-512 the OS's register state) makes the CPU unsupported, and is the one missing.
     #[test]
-    #[cfg(target_arch = "x86_64")]
     fn a_cpu_without_an_assumed_feature_is_refused() {
         let real = Cpuid::read();
         assert!(supported_by(&real));
@@ -305,18 +313,71 @@ mod tests {
             }
             let lacks: Vec<_> = assumed(&c).into_iter().filter(|&(_, has)| !has).map(|(g, _)| g).collect();
             assert!(!supported_by(&c) && lacks == [f.name], "{}: {lacks:?}", f.name);
-            if f.os != Os::None {
-                let mut c = real;
-                c.ymm = false;
-                assert!(!supported_by(&c), "{} without the OS's AVX state", f.name);
+            // Without the OS's register state: AVX's for both kinds, AVX-512's for AVX-512.
+            for (ymm, zmm) in [(false, real.zmm), (real.ymm, false)] {
+                let c = Cpuid { ymm, zmm, ..real };
+                let lacks: Vec<_> = assumed(&c).into_iter().filter(|&(_, has)| !has).collect();
+                let named = lacks.iter().any(|&(g, _)| g == f.name);
+                let needs = f.os == Os::Zmm || (f.os == Os::Ymm && !ymm);
+                assert_eq!(named, needs, "{}: ymm {ymm} zmm {zmm}", f.name);
+                assert!(supported_by(&c) == lacks.is_empty(), "{}: ymm {ymm} zmm {zmm}", f.name);
             }
+        }
+    }
+
+    /// No two features read the same CPUID bit (a copied line that kept its bit would pass
+    /// the comparisons below on a CPU that has both features).
+    #[test]
+    fn each_feature_has_its_own_bit() {
+        for (i, f) in FEATURES.iter().enumerate() {
+            for g in &FEATURES[i + 1..] {
+                assert!(f.name != g.name && (f.reg != g.reg || f.bit != g.bit), "{} and {}", f.name, g.name);
+            }
+        }
+    }
+
+    #[test]
+    fn xcr0_says_which_registers_the_os_saves() {
+        assert_eq!(os_saves(0b11), (false, false)); // x87 and SSE only
+        assert_eq!(os_saves(0b111), (true, false)); // and AVX
+        assert_eq!(os_saves(0b1110_0111), (true, true)); // and AVX-512
+        assert_eq!(os_saves(0b1110_0011), (false, false)); // AVX-512 state without AVX's
+        assert_eq!(os_saves(0b0110_0111), (true, false)); // ZMM16-31 not saved
+        assert_eq!(os_saves(0b1100_0111), (true, false)); // opmask not saved
+    }
+
+    /// Every feature of the table against the kernel's own reading of CPUID (/proc/cpuinfo's
+    /// flags), the features this build assumes included.
+    #[test]
+    fn cpuid_agrees_with_the_kernels_flags() {
+        let Ok(info) = std::fs::read_to_string("/proc/cpuinfo") else {
+            return; // not Linux: the test below still compares with std's detection
+        };
+        let flags: Vec<&str> = info
+            .lines()
+            .find_map(|l| l.strip_prefix("flags"))
+            .and_then(|l| l.split_once(':'))
+            .map(|(_, f)| f.split_whitespace().collect())
+            .unwrap_or_default();
+        assert!(flags.contains(&"sse2"), "no flags line in /proc/cpuinfo");
+        let linux = |f: &'static str| match f {
+            "sse3" => "pni",
+            "sse4.1" => "sse4_1",
+            "sse4.2" => "sse4_2",
+            "cmpxchg16b" => "cx16",
+            "lzcnt" => "abm",
+            f => f,
+        };
+        let cpu = Cpuid::read();
+        for f in FEATURES {
+            // (The kernel lists AVX features only where it saves their registers too.)
+            assert_eq!(cpu.has(f.name), flags.contains(&linux(f.name)), "{}", f.name);
         }
     }
 
     /// The CPUID reading agrees with the standard library's detection on every feature that
     /// this build does not assume (for those, std answers at compile time).
     #[test]
-    #[cfg(target_arch = "x86_64")]
     fn cpuid_agrees_with_runtime_detection() {
         let cpu = Cpuid::read();
         macro_rules! agree {
