@@ -12,12 +12,14 @@
 //! x86-64-v2, v3 and v4; a build for one CPU (`target-cpu=native`) may assume more, and
 //! toolchains before Rust 1.89 do not report AVX-512 to `cfg!`.
 
-/// One x86 feature: its name, where CPUID reports it, and whether the OS must also save the
-/// AVX (`Os::Ymm`) or AVX-512 (`Os::Zmm`) registers for it.
+/// One x86 feature: its name, the x86-64 level (2, 3 or 4) it belongs to, where CPUID reports
+/// it, and whether the OS must also save the AVX (`Os::Ymm`) or AVX-512 (`Os::Zmm`) registers
+/// for it.
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy)]
 struct Feature {
     name: &'static str,
+    level: u32,
     reg: Reg,
     bit: u32,
     os: Os,
@@ -44,38 +46,38 @@ enum Os {
 
 /// Invokes macro `$m` with every x86 feature this module checks (beyond x86-64's SSE2, among
 /// those that `cfg!` reports on stable Rust: x86-64-v2's LAHF/SAHF is not, and every CPU with
-/// SSSE3 has it), as `name reg bit os` tuples.
+/// SSSE3 has it), as `name level reg bit os` tuples.
 #[cfg(target_arch = "x86_64")]
 macro_rules! x86_features {
     ($m:ident) => {
         $m!(
-            ("sse3", Ecx1, 0, None),
-            ("ssse3", Ecx1, 9, None),
-            ("sse4.1", Ecx1, 19, None),
-            ("sse4.2", Ecx1, 20, None),
-            ("popcnt", Ecx1, 23, None),
-            ("cmpxchg16b", Ecx1, 13, None),
-            ("avx", Ecx1, 28, Ymm),
-            ("avx2", Ebx7, 5, Ymm),
-            ("fma", Ecx1, 12, Ymm),
-            ("bmi1", Ebx7, 3, None),
-            ("bmi2", Ebx7, 8, None),
-            ("lzcnt", EcxExt, 5, None),
-            ("movbe", Ecx1, 22, None),
-            ("f16c", Ecx1, 29, Ymm),
-            ("avx512f", Ebx7, 16, Zmm),
-            ("avx512bw", Ebx7, 30, Zmm),
-            ("avx512cd", Ebx7, 28, Zmm),
-            ("avx512dq", Ebx7, 17, Zmm),
-            ("avx512vl", Ebx7, 31, Zmm)
+            ("sse3", 2, Ecx1, 0, None),
+            ("ssse3", 2, Ecx1, 9, None),
+            ("sse4.1", 2, Ecx1, 19, None),
+            ("sse4.2", 2, Ecx1, 20, None),
+            ("popcnt", 2, Ecx1, 23, None),
+            ("cmpxchg16b", 2, Ecx1, 13, None),
+            ("avx", 3, Ecx1, 28, Ymm),
+            ("avx2", 3, Ebx7, 5, Ymm),
+            ("fma", 3, Ecx1, 12, Ymm),
+            ("bmi1", 3, Ebx7, 3, None),
+            ("bmi2", 3, Ebx7, 8, None),
+            ("lzcnt", 3, EcxExt, 5, None),
+            ("movbe", 3, Ecx1, 22, None),
+            ("f16c", 3, Ecx1, 29, Ymm),
+            ("avx512f", 4, Ebx7, 16, Zmm),
+            ("avx512bw", 4, Ebx7, 30, Zmm),
+            ("avx512cd", 4, Ebx7, 28, Zmm),
+            ("avx512dq", 4, Ebx7, 17, Zmm),
+            ("avx512vl", 4, Ebx7, 31, Zmm)
         )
     };
 }
 
 #[cfg(target_arch = "x86_64")]
 macro_rules! feature_table {
-    ($(($f:tt, $r:ident, $b:expr, $o:ident)),*) => {
-        [$(Feature { name: $f, reg: Reg::$r, bit: $b, os: Os::$o, assumed: cfg!(target_feature = $f) }),*]
+    ($(($f:tt, $l:expr, $r:ident, $b:expr, $o:ident)),*) => {
+        [$(Feature { name: $f, level: $l, reg: Reg::$r, bit: $b, os: Os::$o, assumed: cfg!(target_feature = $f) }),*]
     };
 }
 
@@ -143,51 +145,36 @@ pub fn refuse() -> ! {
     std::process::exit(1)
 }
 
-const V2: bool = cfg!(all(
-    target_feature = "sse3",
-    target_feature = "ssse3",
-    target_feature = "sse4.1",
-    target_feature = "sse4.2",
-    target_feature = "popcnt"
-));
-const V3: bool = V2
-    && cfg!(all(
-        target_feature = "avx",
-        target_feature = "avx2",
-        target_feature = "fma",
-        target_feature = "bmi1",
-        target_feature = "bmi2",
-        target_feature = "lzcnt",
-        target_feature = "movbe",
-        target_feature = "f16c"
-    ));
-const V4: bool = V3
-    && cfg!(all(
-        target_feature = "avx512f",
-        target_feature = "avx512bw",
-        target_feature = "avx512cd",
-        target_feature = "avx512dq",
-        target_feature = "avx512vl"
-    ));
+/// Whether this build assumes every feature of x86-64 levels 2 to `level`.
+#[cfg(target_arch = "x86_64")]
+const fn assumes_level(level: u32) -> bool {
+    let mut i = 0;
+    while i < FEATURES.len() {
+        if FEATURES[i].level <= level && !FEATURES[i].assumed {
+            return false;
+        }
+        i += 1;
+    }
+    true
+}
+#[cfg(not(target_arch = "x86_64"))]
+const fn assumes_level(_: u32) -> bool {
+    false
+}
+const V2: bool = assumes_level(2);
 
 /// [`build_target`]'s level, fixed at compile time.
 const BUILD_LEVEL: &str = if cfg!(not(target_arch = "x86_64")) {
     std::env::consts::ARCH
-} else if V4 {
+} else if assumes_level(4) {
     "x86-64-v4"
-} else if V3 {
+} else if assumes_level(3) {
     "x86-64-v3"
 } else if V2 {
     "x86-64-v2"
 } else {
     "x86-64"
 };
-
-/// Each x86 feature this build was compiled to assume and whether the CPU `c` describes has it.
-#[cfg(target_arch = "x86_64")]
-fn assumed(c: &Cpuid) -> Vec<(&'static str, bool)> {
-    FEATURES.iter().filter(|f| f.assumed).map(|f| (f.name, c.has(f.name))).collect()
-}
 
 /// The CPUID bits that say which features this CPU has, and whether the operating system
 /// saves the AVX and AVX-512 registers (XCR0).
@@ -233,21 +220,20 @@ impl Cpuid {
         Cpuid { ecx1, ebx7, ecx_ext, ymm, zmm }
     }
 
-    /// Whether the CPU (and for AVX and AVX-512, the OS) runs feature `f` of [`FEATURES`].
-    fn has(&self, f: &str) -> bool {
-        FEATURES.iter().find(|g| g.name == f).is_some_and(|g| {
-            let r = match g.reg {
-                Reg::Ecx1 => self.ecx1,
-                Reg::Ebx7 => self.ebx7,
-                Reg::EcxExt => self.ecx_ext,
-            };
-            let os = match g.os {
-                Os::None => true,
-                Os::Ymm => self.ymm,
-                Os::Zmm => self.zmm,
-            };
-            r >> g.bit & 1 != 0 && os
-        })
+    /// Whether the CPU (and for AVX and AVX-512, the OS) runs feature `f`.
+    #[cfg(test)]
+    fn has(&self, f: &Feature) -> bool {
+        let r = match f.reg {
+            Reg::Ecx1 => self.ecx1,
+            Reg::Ebx7 => self.ebx7,
+            Reg::EcxExt => self.ecx_ext,
+        };
+        let os = match f.os {
+            Os::None => true,
+            Os::Ymm => self.ymm,
+            Os::Zmm => self.zmm,
+        };
+        r >> f.bit & 1 != 0 && os
     }
 }
 
@@ -257,14 +243,6 @@ impl Cpuid {
 fn os_saves(xcr0: u32) -> (bool, bool) {
     let ymm = xcr0 & 0b110 == 0b110;
     (ymm, ymm && xcr0 & 0b1110_0000 == 0b1110_0000)
-}
-
-/// The compile-time features this CPU lacks (none where the binary runs here).
-pub fn missing() -> Vec<&'static str> {
-    #[cfg(target_arch = "x86_64")]
-    return assumed(&Cpuid::read()).into_iter().filter(|&(_, has)| !has).map(|(f, _)| f).collect();
-    #[cfg(not(target_arch = "x86_64"))]
-    Vec::new()
 }
 
 /// What this build was compiled for: `x86-64-v2`, `x86-64-v3`, `x86-64-v4`, or (for builds
@@ -285,12 +263,23 @@ pub fn build_target() -> String {
 mod tests {
     use super::*;
 
+    /// Each x86 feature this build was compiled to assume and whether the CPU `c` describes has it.
+    fn assumed(c: &Cpuid) -> Vec<(&'static str, bool)> {
+        FEATURES.iter().filter(|f| f.assumed).map(|f| (f.name, c.has(f))).collect()
+    }
+
+    /// The features this build assumes that the CPU `c` describes lacks.
+    fn lacking(c: &Cpuid) -> Vec<&'static str> {
+        assumed(c).into_iter().filter(|&(_, has)| !has).map(|(f, _)| f).collect()
+    }
+
     /// The CPU running the tests runs what the build assumes, and the build is named by the
     /// features it assumes (x86-64-v2 under the repository's `.cargo/config.toml`; a
     /// `RUSTFLAGS` of one's own replaces that config, and names another level).
     #[test]
     fn this_cpu_runs_what_the_build_assumes() {
-        assert!(supported() && missing().is_empty(), "this CPU lacks {:?}", missing());
+        let lacks = lacking(&Cpuid::read());
+        assert!(supported() && lacks.is_empty(), "this CPU lacks {lacks:?}");
         match (V2, cfg!(target_feature = "avx")) {
             (true, false) => assert_eq!(build_target(), "x86-64-v2"),
             (false, false) if !cfg!(target_feature = "sse3") => assert_eq!(build_target(), "x86-64"),
@@ -311,13 +300,13 @@ mod tests {
                 Reg::Ebx7 => c.ebx7 &= !(1 << f.bit),
                 Reg::EcxExt => c.ecx_ext &= !(1 << f.bit),
             }
-            let lacks: Vec<_> = assumed(&c).into_iter().filter(|&(_, has)| !has).map(|(g, _)| g).collect();
+            let lacks = lacking(&c);
             assert!(!supported_by(&c) && lacks == [f.name], "{}: {lacks:?}", f.name);
             // Without the OS's register state: AVX's for both kinds, AVX-512's for AVX-512.
             for (ymm, zmm) in [(false, real.zmm), (real.ymm, false)] {
                 let c = Cpuid { ymm, zmm, ..real };
-                let lacks: Vec<_> = assumed(&c).into_iter().filter(|&(_, has)| !has).collect();
-                let named = lacks.iter().any(|&(g, _)| g == f.name);
+                let lacks = lacking(&c);
+                let named = lacks.contains(&f.name);
                 let needs = f.os == Os::Zmm || (f.os == Os::Ymm && !ymm);
                 assert_eq!(named, needs, "{}: ymm {ymm} zmm {zmm}", f.name);
                 assert!(supported_by(&c) == lacks.is_empty(), "{}: ymm {ymm} zmm {zmm}", f.name);
@@ -371,7 +360,7 @@ mod tests {
         let cpu = Cpuid::read();
         for f in FEATURES {
             // (The kernel lists AVX features only where it saves their registers too.)
-            assert_eq!(cpu.has(f.name), flags.contains(&linux(f.name)), "{}", f.name);
+            assert_eq!(cpu.has(&f), flags.contains(&linux(f.name)), "{}", f.name);
         }
     }
 
@@ -381,9 +370,10 @@ mod tests {
     fn cpuid_agrees_with_runtime_detection() {
         let cpu = Cpuid::read();
         macro_rules! agree {
-            ($(($f:tt, $r:ident, $b:expr, $o:ident)),*) => {$(
+            ($(($f:tt, $l:expr, $r:ident, $b:expr, $o:ident)),*) => {$(
                 if !cfg!(target_feature = $f) {
-                    assert_eq!(cpu.has($f), std::is_x86_feature_detected!($f), "{}", $f);
+                    let f = FEATURES.iter().find(|g| g.name == $f).unwrap();
+                    assert_eq!(cpu.has(f), std::is_x86_feature_detected!($f), "{}", $f);
                 }
             )*};
         }
