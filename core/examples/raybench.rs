@@ -1,4 +1,5 @@
 //! Ray-query throughput on a scene's BVH: `cargo run --release -p furnace-core --example raybench SCENE.xml`.
+use furnace_core::geometry::bvh::SpawnedFrom;
 use furnace_core::geometry::Ray;
 use furnace_core::math::{square_to_uniform_sphere, Vec2, Vec3};
 use std::time::Instant;
@@ -24,11 +25,14 @@ fn main() {
         }
     }
     let t = Instant::now();
-    let hits = rays.iter().filter(|(r, l)| scene.accel.closest(&scene.shapes, r, *l).is_some()).count();
+    let hits = rays
+        .iter()
+        .filter(|(r, l)| scene.accel.closest(&scene.shapes, r, SpawnedFrom::piece(*l)).is_some())
+        .count();
     let dt = t.elapsed().as_secs_f64();
     println!("closest hit: {:.2} Mrays/s ({hits} hits)", n as f64 / dt / 1e6);
     let t = Instant::now();
-    let occ = rays.iter().filter(|(r, l)| scene.occluded_leaving(r, *l)).count();
+    let occ = rays.iter().filter(|(r, l)| scene.occluded_from(r, SpawnedFrom::piece(*l))).count();
     let dt = t.elapsed().as_secs_f64();
     println!("any hit:     {:.2} Mrays/s ({occ} occluded)", n as f64 / dt / 1e6);
 }

@@ -32,8 +32,12 @@ struct PrimRef {
 
 const TRIANGLE: u32 = 1 << 31;
 const CURVE: u32 = 1 << 30;
+/// Set on the first primitive of a leaf whose triangles all lie in one plane (up to their
+/// vertices' rounding): a ray spawned from one of them cannot meet the leaf again
+/// ([`Accel::spawned_from`]).
+const PLANAR: u32 = 1 << 29;
 /// The shape index of a [`PrimRef`].
-const SHAPE: u32 = !(TRIANGLE | CURVE);
+const SHAPE: u32 = !(TRIANGLE | CURVE | PLANAR);
 
 /// Primitive count above which the BVH is built with obvhs' very fast settings.
 const FAST_BUILD_ABOVE: usize = 1 << 21;
@@ -49,6 +53,9 @@ const LEAF: u32 = 1 << 31;
 /// them together.
 const TRI_LEAF: u32 = 1 << 30;
 const FIRST_BITS: u32 = 28;
+/// A leaf's first primitive, and its count less one, in its child reference.
+const FIRST: u32 = (1 << FIRST_BITS) - 1;
+const COUNT: u32 = 3 << FIRST_BITS;
 const _: () = assert!(LEAF_MAX <= 4, "a leaf's count takes two bits, its triangles four lanes");
 /// Most primitives one BVH can name.
 pub const MAX_PRIMS: usize = 1 << FIRST_BITS;
@@ -862,6 +869,11 @@ struct Query<'a> {
     inner: Cell<(u32, Vec2, f32)>,
     /// The fibre piece the ray leaves, not tested (see [`Leaving`]).
     leaving: Option<Leaving>,
+    /// A leaf the ray cannot meet again, not tested ([`SpawnedFrom`]); 0 (the root, never a
+    /// leaf) for none.
+    skip: u32,
+    /// The leaf of the closest hit so far (`best`'s).
+    leaf: u32,
 }
 
 impl<'a> Query<'a> {
@@ -870,13 +882,19 @@ impl<'a> Query<'a> {
     }
 
     fn leaving(shapes: &'a [Shape], ray: &'a Ray, leaving: Option<Leaving>) -> Query<'a> {
+        Query::from(shapes, ray, SpawnedFrom { piece: leaving, leaf: 0 })
+    }
+
+    fn from(shapes: &'a [Shape], ray: &'a Ray, from: SpawnedFrom) -> Query<'a> {
         Query {
             shapes,
             ray,
             pre: RayPre::new(ray.d),
             best: None,
             inner: Cell::new((0, Vec2::ZERO, 0.0)),
-            leaving,
+            leaving: from.piece,
+            skip: from.leaf,
+            leaf: 0,
         }
     }
 }
@@ -950,6 +968,9 @@ impl Builder<'_> {
                 let slot0 = self.tris.push(&tris);
                 for p in self.prims[start..].iter_mut().filter(|p| p.shape & TRIANGLE != 0) {
                     p.index += slot0;
+                }
+                if tris.len() == count && coplanar(tris.iter().map(|t| &t.0)) {
+                    self.prims[start].shape |= PLANAR;
                 }
             }
         }
@@ -1049,6 +1070,20 @@ fn merge_triangle_leaves(b2: &mut obvhs::bvh2::Bvh2, is_tri: impl Fn(u32) -> boo
         }
         // Otherwise it stays an inner node, and so does every node above it (cost None).
     }
+}
+
+/// Whether the triangles all lie in the plane of the first (not degenerate), each vertex to
+/// within four units of rounding of the largest coordinate: as the two triangles of a
+/// transformed rectangle do. A ray leaving one of them can meet the others then only within
+/// that rounding of where it starts, closer than its spawn offset.
+fn coplanar<'a>(mut tris: impl Iterator<Item = &'a [Vec3; 3]> + Clone) -> bool {
+    let Some(&[a, b, c]) = tris.clone().next() else { return false };
+    let (a, b, c) = (a.as_dvec3(), b.as_dvec3(), c.as_dvec3());
+    let n = (b - a).cross(c - a);
+    let len = n.length();
+    let scale = tris.clone().flatten().map(|v| v.abs().max_element()).fold(0.0f32, f32::max) as f64;
+    let tol = 4.0 * f32::EPSILON as f64 * scale * len;
+    len > 0.0 && tris.all(|t| t.iter().all(|v| n.dot(v.as_dvec3() - a).abs() <= tol))
 }
 
 /// `refs` (all `count` primitives) sorted by the Morton code of their box centres (10 bits an
@@ -1402,7 +1437,7 @@ impl Accel {
 
     /// The closest hit along `ray`, if any.
     pub fn intersect(&self, shapes: &[Shape], ray: &Ray) -> Option<Interaction> {
-        let hit = self.closest(shapes, ray, None)?;
+        let hit = self.closest(shapes, ray, SpawnedFrom::NOTHING)?;
         Some(self.hit_interaction(shapes, ray, &hit))
     }
 
@@ -1411,23 +1446,55 @@ impl Accel {
     /// builds it where it is used; made inside an `Option`, its fields were written in
     /// pieces and copied out whole, and the copy waited on those writes (a failed store
     /// forward).
-    /// `leaving`: the fibre piece the ray was spawned from, which is not tested (it has no
-    /// hit to give the ray: [`Leaving`]).
+    /// `from`: what the ray was spawned from ([`Accel::spawned_from`]), which is not tested
+    /// (it has no hit to give the ray).
     #[inline]
-    pub fn closest(&self, shapes: &[Shape], ray: &Ray, leaving: Option<Leaving>) -> Option<Hit> {
-        let mut q = Query::leaving(shapes, ray, leaving);
+    pub fn closest(&self, shapes: &[Shape], ray: &Ray, from: SpawnedFrom) -> Option<Hit> {
+        let mut q = Query::from(shapes, ray, from);
         let (t, k, aux) = self.query_with(&mut q, false)?;
-        Some(Hit { t, k, aux, inner: q.inner.get() })
+        Some(Hit { t, k, aux, inner: q.inner.get(), leaf: q.leaf })
     }
 
     /// Whether anything blocks `ray` within `[tmin, tmax)`.
     pub fn occluded(&self, shapes: &[Shape], ray: &Ray) -> bool {
-        self.occluded_leaving(shapes, ray, None)
+        self.occluded_from(shapes, ray, SpawnedFrom::NOTHING)
     }
 
-    /// [`Accel::occluded`] for a ray spawned from the fibre piece `leaving`.
-    pub fn occluded_leaving(&self, shapes: &[Shape], ray: &Ray, leaving: Option<Leaving>) -> bool {
-        self.query_with(&mut Query::leaving(shapes, ray, leaving), true).is_some()
+    /// [`Accel::occluded`] for a ray spawned from `from` ([`Accel::spawned_from`]).
+    pub fn occluded_from(&self, shapes: &[Shape], ray: &Ray, from: SpawnedFrom) -> bool {
+        self.query_with(&mut Query::from(shapes, ray, from), true).is_some()
+    }
+
+    /// What a ray spawned at `hit` (whose interaction is `it`) along `d` leaves behind, for
+    /// [`Accel::closest`] and [`Accel::occluded_from`] to pass over: the fibre piece it leaves
+    /// ([`Leaving`]), and the hit's leaf where the ray cannot meet that leaf again. That is a
+    /// leaf of triangles in one plane (a rectangle: [`PLANAR`]) or a disk, whichever way the
+    /// ray goes, and a sphere alone in its leaf when the ray heads out of it (the line then
+    /// meets the sphere only behind its start). All such a leaf could give the ray is a hit on
+    /// itself where it starts, which the spawn offset is there to avoid; the test it no longer
+    /// takes is often the query's first, as the ray starts inside the leaf's box.
+    #[inline]
+    pub fn spawned_from(&self, shapes: &[Shape], hit: &Hit, it: &Interaction, d: Vec3) -> SpawnedFrom {
+        let piece = it.leaving();
+        let leaf = hit.leaf;
+        if leaf & LEAF == 0 {
+            return SpawnedFrom { piece, leaf: 0 };
+        }
+        let first = self.prims[(leaf & FIRST) as usize];
+        let own = if first.shape & PLANAR != 0 {
+            true
+        } else if leaf & (TRI_LEAF | COUNT) == 0 && first.shape & (TRIANGLE | CURVE) == 0 {
+            let shape = &shapes[(first.shape & SHAPE) as usize];
+            match shape.geometry {
+                Geometry::Disk(_) => true,
+                // (The geometric normal, unflipped, points out of the ball.)
+                Geometry::Sphere(_) => (if shape.flip_normals { -it.ng } else { it.ng }).dot(d) > 0.0,
+                _ => false,
+            }
+        } else {
+            false
+        };
+        SpawnedFrom { piece, leaf: if own { leaf } else { 0 } }
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -1466,7 +1533,7 @@ impl Accel {
         let mut cur = 0u32; // the root
         loop {
             if cur & LEAF != 0 {
-                if self.test_leaf::<T, ANY>(q, cur, &tri_ray, tmin, &mut tmax, &mut hits) {
+                if cur != q.skip && self.test_leaf::<T, ANY>(q, cur, &tri_ray, tmin, &mut tmax, &mut hits) {
                     return tmax;
                 }
             } else {
@@ -1564,6 +1631,7 @@ impl Accel {
                     if h.within(j, *tmax) && h.t[j] < *tmax {
                         *tmax = h.t[j];
                         q.best = Some((first + j as u32, Vec2::new(h.b1[j], h.b2[j])));
+                        q.leaf = cur;
                         if ANY {
                             return true;
                         }
@@ -1580,6 +1648,7 @@ impl Accel {
                     if t < *tmax {
                         *tmax = t;
                         q.best = Some((k, aux));
+                        q.leaf = cur;
                         if ANY {
                             return true;
                         }
@@ -1673,7 +1742,7 @@ impl Accel {
         let mut q = Query::new(shapes, ray);
         if !cands.complete {
             let (t, k, aux) = self.query_with(&mut q, false)?;
-            return Some(Hit { t, k, aux, inner: q.inner.get() });
+            return Some(Hit { t, k, aux, inner: q.inner.get(), leaf: q.leaf });
         }
         // SAFETY: `self.kernel` is one that this CPU runs (`detect`, `set_kernel`).
         let t = unsafe {
@@ -1686,7 +1755,7 @@ impl Accel {
             }
         };
         let (k, aux) = q.best?;
-        Some(Hit { t, k, aux, inner: q.inner.get() })
+        Some(Hit { t, k, aux, inner: q.inner.get(), leaf: q.leaf })
     }
 
     /// The interaction of `hit`, found along `ray`.
@@ -1721,10 +1790,29 @@ impl Accel {
     }
 }
 
+/// What a ray spawned from a surface leaves behind, which its traversal passes over: the
+/// fibre piece ([`Leaving`]) and a leaf that it cannot meet again ([`Accel::spawned_from`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SpawnedFrom {
+    pub piece: Option<Leaving>,
+    /// A leaf reference of the tree whose [`Accel::spawned_from`] made it; 0 for none.
+    leaf: u32,
+}
+
+impl SpawnedFrom {
+    /// A ray from nowhere (a camera's): every primitive is tested.
+    pub const NOTHING: SpawnedFrom = SpawnedFrom { piece: None, leaf: 0 };
+
+    /// A ray that leaves the fibre piece `piece` (if any) and nothing else.
+    pub fn piece(piece: Option<Leaving>) -> SpawnedFrom {
+        SpawnedFrom { piece, leaf: 0 }
+    }
+}
+
 /// Camera rays of one pixel traced together by [`Accel::intersect_among_packet`].
 pub const PACKET: usize = 8;
 
-/// A closest hit before its interaction is made ([`Accel::hit_interaction`]): 32 bytes where
+/// A closest hit before its interaction is made ([`Accel::hit_interaction`]): 36 bytes where
 /// the interaction takes 128.
 #[derive(Clone, Copy, Debug)]
 pub struct Hit {
@@ -1734,6 +1822,8 @@ pub struct Hit {
     aux: Vec2,
     /// [`Query::inner`], for a hit inside an instance.
     inner: (u32, Vec2, f32),
+    /// The leaf that holds primitive `k` (for [`Accel::spawned_from`]).
+    leaf: u32,
 }
 
 impl Accel {
@@ -1770,7 +1860,8 @@ impl Accel {
                 let tmax = unsafe { self.among_packet_avx(&mut qs, n, &cands.leaves) };
                 for (j, o) in out.iter_mut().enumerate() {
                     let q = &qs[j];
-                    *o = q.best.map(|(k, aux)| Hit { t: tmax[j], k, aux, inner: q.inner.get() });
+                    *o =
+                        q.best.map(|(k, aux)| Hit { t: tmax[j], k, aux, inner: q.inner.get(), leaf: q.leaf });
                 }
                 return;
             }
@@ -1856,6 +1947,7 @@ impl Accel {
                             accept &= accept - 1;
                             tmax[lane] = t[lane];
                             qs[lane].best = Some((first + j as u32, Vec2::ZERO));
+                            qs[lane].leaf = leaf;
                         }
                         tmax_v = _mm256_loadu_ps(tmax.as_ptr());
                     }
@@ -1896,6 +1988,7 @@ impl Accel {
                     m &= m - 1;
                     tmax[j] = t[j];
                     qs[j].best = Some((k, Vec2::new(b1[j], b2[j])));
+                    qs[j].leaf = leaf;
                 }
                 // A ray through an edge exactly: the scalar test (double precision there).
                 let mut m = edge;
@@ -1908,6 +2001,7 @@ impl Accel {
                         if t < tmax[j] {
                             tmax[j] = t;
                             q.best = Some((k, Vec2::new(b1, b2)));
+                            q.leaf = leaf;
                         }
                     }
                 }
@@ -2286,10 +2380,167 @@ mod tests {
         Shape { geometry, bsdf: 0, light: None, flip_normals: false, name: name.into() }
     }
 
+    /// Triangles in one plane, up to their vertices' rounding: a transformed rectangle's are;
+    /// a quad folded by 1e-4 radians, or a degenerate first triangle, are not.
+    #[test]
+    fn coplanar_takes_rounding_not_folds() {
+        let placed = glam::Mat4::from_scale_rotation_translation(
+            Vec3::new(50.0, 0.37, 3.0),
+            glam::Quat::from_euler(glam::EulerRot::XYZ, -1.5707964, 0.3, 0.1),
+            Vec3::new(-7.0, 1e3, 0.25),
+        );
+        let tris = |m: &Mesh| -> Vec<[Vec3; 3]> { (0..m.tris.len()).map(|i| m.tri(i)).collect() };
+        assert!(coplanar(tris(&Mesh::placed_rectangle(&placed)).iter()));
+        let mut folded = Mesh::rectangle();
+        folded.positions[2].z = 2e-4; // the far corner of the second triangle lifted
+        assert!(!coplanar(tris(&folded).iter()));
+        folded.transform_flat(&placed);
+        assert!(!coplanar(tris(&folded).iter()));
+        let flat = [Vec3::ZERO, Vec3::X, Vec3::X * 2.0];
+        assert!(!coplanar([flat, [Vec3::ZERO, Vec3::X, Vec3::Y]].iter()), "a degenerate first triangle");
+    }
+
+    /// Rays spawned as the integrator spawns them, from hits on a placed rectangle, a folded
+    /// quad, spheres (one with flipped normals), a disk and a cube, get from
+    /// `Accel::spawned_from`'s skip exactly the closest hit that the query without it gets,
+    /// and `occluded_from` agrees. The skip is taken on the rectangle, the disk and rays
+    /// leaving a sphere, never by rays into a sphere (they hit it again) nor on the folded
+    /// quad, whose triangles share a leaf: rays from one of them to the other keep that hit.
+    #[test]
+    fn rays_skip_only_leaves_they_cannot_meet_again() {
+        let sphere = |c: Vec3, r: f32, flip: bool| Shape {
+            flip_normals: flip,
+            ..shape(
+                Geometry::Sphere(super::super::Sphere { center: c, radius: r, rot: glam::Mat3::IDENTITY }),
+                "ball",
+            )
+        };
+        let wall = glam::Mat4::from_scale_rotation_translation(
+            Vec3::new(2.0, 0.7, 1.0),
+            glam::Quat::from_euler(glam::EulerRot::XYZ, 0.3, 0.5, 0.2),
+            Vec3::new(0.0, 0.0, -3.0),
+        );
+        let mut folded = Mesh::rectangle();
+        folded.positions[2].z = 0.3; // the second triangle ([0, 2, 3]) tilts up towards +z
+        folded.transform_flat(&glam::Mat4::from_translation(Vec3::new(3.0, 0.0, 0.0)));
+        let mut cube = Mesh::cube();
+        cube.transform_flat(&glam::Mat4::from_scale_rotation_translation(
+            Vec3::splat(0.6),
+            glam::Quat::from_rotation_y(0.4),
+            Vec3::new(-3.0, 0.5, 0.0),
+        ));
+        let disk = glam::Mat4::from_rotation_translation(
+            glam::Quat::from_rotation_x(1.2),
+            Vec3::new(0.0, -2.5, 0.5),
+        );
+        let shapes = vec![
+            shape(Geometry::Mesh(Mesh::placed_rectangle(&wall)), "wall"),
+            shape(Geometry::Mesh(folded), "folded"),
+            sphere(Vec3::new(0.0, 2.5, 0.0), 0.8, false),
+            sphere(Vec3::new(2.5, 2.5, 0.5), 0.5, true),
+            shape(Geometry::Disk(super::super::Disk::new(disk)), "disk"),
+            shape(Geometry::Mesh(cube), "cube"),
+        ];
+        let accel = Accel::build(&shapes);
+        let centres = [
+            Vec3::new(0.0, 0.0, -3.0),
+            Vec3::new(3.5, 0.5, 0.0),
+            Vec3::new(0.0, 2.5, 0.0),
+            Vec3::new(2.5, 2.5, 0.5),
+            Vec3::new(0.0, -2.5, 0.5),
+            Vec3::new(-3.0, 0.5, 0.0),
+        ];
+        let mut s = 4242;
+        let mut skipped = [0u32; 6]; // rays that skipped their leaf, by the shape they left
+        let (mut spawned, mut into_balls, mut folded_leaf) = (0, 0, None);
+        for round in 0..30_000 {
+            let target = centres[round % 6]
+                + (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5) * 2.0;
+            let o = target
+                + (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5)
+                    .normalize_or(Vec3::Z)
+                    * 9.0;
+            let ray = Ray::new(o, (target - o).normalize());
+            let Some(hit) = accel.closest(&shapes, &ray, SpawnedFrom::NOTHING) else { continue };
+            let it = accel.hit_interaction(&shapes, &ray, &hit);
+            if it.shape == 1 {
+                // Both triangles of the folded quad in one leaf, never taken as a plane.
+                assert_eq!(*folded_leaf.get_or_insert(hit.leaf), hit.leaf, "the folded quad in two leaves");
+            }
+            let mut dirs: Vec<Vec3> = (0..4)
+                .map(|_| {
+                    crate::math::square_to_uniform_sphere(glam::Vec2::new(xorshift(&mut s), xorshift(&mut s)))
+                })
+                .collect();
+            if it.shape == 1 && it.prim == 0 {
+                // Towards a point of the tilted triangle, on its side: a hit on the same leaf.
+                let (b1, b2) = (xorshift(&mut s), xorshift(&mut s));
+                let (b1, b2) = if b1 + b2 > 1.0 { (1.0 - b1, 1.0 - b2) } else { (b1, b2) };
+                let [p0, p2, p3] = [0, 2, 3].map(|v| match &shapes[1].geometry {
+                    Geometry::Mesh(m) => m.positions[v],
+                    _ => unreachable!(),
+                });
+                dirs.push((p0 + (p2 - p0) * b1 + (p3 - p0) * b2 - it.p).normalize());
+            }
+            for (k, d) in dirs.into_iter().enumerate() {
+                let ray = it.spawn_ray(d);
+                let from = accel.spawned_from(&shapes, &hit, &it, d);
+                let full = accel.closest(&shapes, &ray, SpawnedFrom::piece(it.leaving()));
+                let fast = accel.closest(&shapes, &ray, from);
+                let key = |h: Option<Hit>| {
+                    h.map(|h| {
+                        let i = accel.hit_interaction(&shapes, &ray, &h);
+                        (h.t, i.shape, i.prim)
+                    })
+                };
+                assert_eq!(
+                    key(full),
+                    key(fast),
+                    "round {round}: from shape {} prim {} along {d}",
+                    it.shape,
+                    it.prim
+                );
+                assert_eq!(accel.occluded_from(&shapes, &ray, from), fast.is_some());
+                spawned += 1;
+                if from.leaf != 0 {
+                    assert_eq!(from.leaf, hit.leaf);
+                    skipped[it.shape as usize] += 1;
+                }
+                let inward = it.ng.dot(d) < 0.0;
+                match it.shape {
+                    2 | 3 if (it.shape == 3) != inward => {
+                        // Into the ball: no skip, and the ball is met again from inside.
+                        assert_eq!(from.leaf, 0);
+                        assert_eq!(key(fast).map(|h| h.1), Some(it.shape), "a ray into a ball left it");
+                        into_balls += 1;
+                    }
+                    2 | 3 | 0 | 4 => assert_ne!(from.leaf, 0, "shape {} not skipped", it.shape),
+                    1 => {
+                        assert_eq!(from.leaf, 0, "the folded quad taken as a plane");
+                        if k == 4 {
+                            assert_eq!(
+                                key(fast).map(|h| (h.1, h.2)),
+                                Some((1, 1)),
+                                "the fold's other side lost"
+                            );
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+        assert!(folded_leaf.is_some());
+        assert!(
+            skipped[0] > 2000 && skipped[2] > 1000 && skipped[3] > 500 && skipped[4] > 1000,
+            "{skipped:?}"
+        );
+        assert!(into_balls > 1000 && spawned > 50_000, "{into_balls} into balls, {spawned} rays");
+    }
+
     /// Through the tree: rays spawned from fibre hits (`Accel::intersect`, then
     /// `Interaction::spawn_ray` and `Interaction::leaving`) never get a hit on the piece they
     /// leave from `Accel::closest`, and otherwise get what the full query gets;
-    /// `Accel::occluded_leaving` agrees with it. The fibres are the second shape, after a
+    /// `Accel::occluded_from` agrees with it. The fibres are the second shape, after a
     /// mesh, so that the skip must match the shape index without the primitive's flags. A
     /// group of other fibres is placed twice, the second copy 3e-3 from the first (within a
     /// fibre's radius), so that a ray leaving a piece of one copy often meets the same piece
@@ -2365,9 +2616,12 @@ mod tests {
                 from_fibres += 1;
                 let full = accel.intersect(&shapes, &ray);
                 let skipped = accel
-                    .closest(&shapes, &ray, Some(leaving))
+                    .closest(&shapes, &ray, SpawnedFrom::piece(Some(leaving)))
                     .map(|h| accel.hit_interaction(&shapes, &ray, &h));
-                assert_eq!(accel.occluded_leaving(&shapes, &ray, Some(leaving)), skipped.is_some());
+                assert_eq!(
+                    accel.occluded_from(&shapes, &ray, SpawnedFrom::piece(Some(leaving))),
+                    skipped.is_some()
+                );
                 let on_left = |h: &Interaction| h.leaving() == Some(leaving);
                 assert!(!skipped.as_ref().is_some_and(on_left), "the skip returned the piece left");
                 let same_piece_elsewhere = |h: &Interaction| {

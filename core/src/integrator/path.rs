@@ -9,7 +9,7 @@ use glam::{Vec2, Vec3};
 
 use super::Stats;
 use crate::bsdf::Bsdf;
-use crate::geometry::bvh::Hit;
+use crate::geometry::bvh::{Hit, SpawnedFrom};
 use crate::geometry::{Ray, RayDifferentials};
 use crate::light::Light;
 use crate::math::{apart, apart2, mis_power, Rgb};
@@ -71,8 +71,8 @@ pub fn li(
     let mut prev_pdf = 0.0f32;
     let mut prev_delta = true;
     let mut passes = 0u32;
-    // The fibre piece the ray leaves (its traversal does not test it: `geometry::Leaving`).
-    let mut leaving = None;
+    // What the ray leaves behind, which its traversal does not test (`Accel::spawned_from`).
+    let mut from = SpawnedFrom::NOTHING;
 
     loop {
         st.rays += 1;
@@ -80,7 +80,7 @@ pub fn li(
         // Without light sampling at the previous vertex, emission found here is unweighted.
         let unweighted = depth == 0 || prev_delta || !plan.light_sampling;
         let hit = match std::mem::replace(&mut first, First::Trace) {
-            First::Trace => scene.accel.closest(&scene.shapes, &ray, leaving),
+            First::Trace => scene.accel.closest(&scene.shapes, &ray, from),
             First::Found(hit) => hit,
         };
         let Some(hit) = hit else {
@@ -109,7 +109,7 @@ pub fn li(
         if !show_emitters && shape.light.is_some() && passes < MAX_PASSES {
             passes += 1;
             ray = it.spawn_ray(ray.d);
-            leaving = it.leaving();
+            from = scene.accel.spawned_from(&scene.shapes, &hit, &it, ray.d);
             continue;
         }
         let wo_world = -ray.d;
@@ -188,7 +188,8 @@ pub fn li(
                             None => it.spawn_ray(ls_wi),
                         };
                         st.shadow_rays += 1;
-                        if !scene.occluded_leaving(&shadow, it.leaving()) {
+                        let from = scene.accel.spawned_from(&scene.shapes, &hit, &it, ls_wi);
+                        if !scene.occluded_from(&shadow, from) {
                             let light_pdf = ls.pdf * sel_pdf;
                             let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
                             l += beta * f * ls.li(light) * (w / light_pdf);
@@ -212,7 +213,7 @@ pub fn li(
         prev_pdf = bs.pdf;
         prev_delta = bs.delta;
         ray = it.spawn_ray(wi_world);
-        leaving = it.leaving();
+        from = scene.accel.spawned_from(&scene.shapes, &hit, &it, wi_world);
         depth += 1;
 
         if depth >= settings.rr_depth {

@@ -216,11 +216,11 @@ impl Scene {
         self.accel.occluded(&self.shapes, ray)
     }
 
-    /// [`Scene::occluded`] for a ray spawned from the fibre piece `leaving`
-    /// ([`crate::geometry::Leaving`]).
+    /// [`Scene::occluded`] for a ray spawned from `from`
+    /// ([`crate::geometry::bvh::Accel::spawned_from`]).
     #[inline]
-    pub fn occluded_leaving(&self, ray: &Ray, leaving: Option<crate::geometry::Leaving>) -> bool {
-        self.accel.occluded_leaving(&self.shapes, ray, leaving)
+    pub fn occluded_from(&self, ray: &Ray, from: crate::geometry::bvh::SpawnedFrom) -> bool {
+        self.accel.occluded_from(&self.shapes, ray, from)
     }
 }
 
