@@ -442,14 +442,20 @@ pub fn hash_u32(mut x: u32) -> u32 {
     x
 }
 
-/// Hash of several words, order-sensitive.
+/// Hash of several words, order-sensitive: [`hash_step`] from [`HASH_START`] for each.
 #[inline]
 pub fn hash_words(words: &[u32]) -> u32 {
-    let mut h = 0x9e37_79b9u32;
-    for &w in words {
-        h = hash_u32(h ^ w.wrapping_add(0x9e37_79b9).wrapping_add(h << 6).wrapping_add(h >> 2));
-    }
-    h
+    words.iter().fold(HASH_START, |h, &w| hash_step(h, w))
+}
+
+/// [`hash_words`]' state before any word.
+pub const HASH_START: u32 = 0x9e37_79b9;
+
+/// [`hash_words`]' state `h` after one more word `w`: a hash of words that share their first
+/// ones can start from the state after those (`hash_words(&[a, b]) == hash_step(hash_step(HASH_START, a), b)`).
+#[inline]
+pub fn hash_step(h: u32, w: u32) -> u32 {
+    hash_u32(h ^ w.wrapping_add(0x9e37_79b9).wrapping_add(h << 6).wrapping_add(h >> 2))
 }
 
 #[cfg(test)]

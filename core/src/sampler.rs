@@ -14,7 +14,7 @@ use std::cell::Cell;
 
 use sobol_burley::parts::{self, Int4};
 
-use crate::math::{hash_u32, hash_words};
+use crate::math::{hash_step, hash_u32, hash_words, HASH_START};
 
 /// 4-D sets drawn from Owen-scrambled Sobol; later sets are hashed uniform numbers.
 pub const SOBOL_SETS: u32 = 5;
@@ -33,6 +33,8 @@ pub struct PixelSeeds {
     y: u32,
     block: u32,
     seed: u32,
+    /// [`hash_words`]' state after `seed`: the hashed sets' hashes start with it.
+    after_seed: u32,
     sets: [Cell<Option<SetSeeds>>; SOBOL_SETS as usize],
 }
 
@@ -55,7 +57,7 @@ impl SetSeeds {
 impl PixelSeeds {
     /// The seeds of pixel `(x, y)`'s samples under `job_seed`.
     pub fn new(job_seed: u64, x: u32, y: u32) -> PixelSeeds {
-        let mut p = PixelSeeds { job_seed, x, y, block: 0, seed: 0, sets: Default::default() };
+        let mut p = PixelSeeds { job_seed, x, y, block: 0, seed: 0, after_seed: 0, sets: Default::default() };
         p.set_block(0);
         p
     }
@@ -64,6 +66,7 @@ impl PixelSeeds {
         let j = self.job_seed;
         self.block = block;
         self.seed = hash_words(&[j as u32, (j >> 32) as u32, self.x, self.y, block]);
+        self.after_seed = hash_step(HASH_START, self.seed);
         self.sets = Default::default();
     }
 
@@ -135,10 +138,26 @@ impl SampleStream<'_> {
         if set < SOBOL_SETS {
             return sobol_point(self.index, &self.pixel.set(set as usize));
         }
-        let h = hash_words(&[self.pixel.seed, set, self.index]);
-        let unit = |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
-        [unit(1), unit(2), unit(3), unit(4)]
+        // hash_words(&[seed, set, index]), from the state after the seed.
+        hashed_units(hash_step(hash_step(self.pixel.after_seed, set), self.index))
     }
+}
+
+/// A hashed set's four numbers from its hash `h`: each its own hash of `h`, 24 bits of it as
+/// a float in [0, 1). With SSE4.1 where the CPU has it, the four at once (the same bits).
+#[inline]
+fn hashed_units(h: u32) -> [f32; 4] {
+    #[cfg(target_arch = "x86_64")]
+    if has_sse41() {
+        // SAFETY: the CPU has SSE4.1.
+        return unsafe { sse41::hashed_units(h) };
+    }
+    hashed_units_portable(h)
+}
+
+fn hashed_units_portable(h: u32) -> [f32; 4] {
+    let unit = |k: u32| (hash_u32(h ^ k.wrapping_mul(0x9e37_79b9)) >> 8) as f32 * (1.0 / 16_777_216.0);
+    [unit(1), unit(2), unit(3), unit(4)]
 }
 
 /// The first 4-D Sobol set of `sobol_burley` as two tables of 256 points: the (reversed) Sobol
@@ -238,6 +257,25 @@ mod sse41 {
             _mm_castsi128_ps(_mm_or_si128(_mm_srli_epi32::<9>(n), k(0x3f80_0000))),
             _mm_set1_ps(1.0),
         );
+        let mut out = [0.0f32; 4];
+        _mm_storeu_ps(out.as_mut_ptr(), f);
+        out
+    }
+
+    /// [`super::hashed_units_portable`] in four lanes: `hash_u32` of h ^ k 0x9e3779b9 for
+    /// k = 1..4, then 24 bits each as a float (exact: below 2^24, signed or not).
+    #[target_feature(enable = "sse4.1")]
+    pub(super) unsafe fn hashed_units(h: u32) -> [f32; 4] {
+        let k = |c: u32| _mm_set1_epi32(c as i32);
+        let lanes = |k: u32| k.wrapping_mul(0x9e37_79b9) as i32;
+        let mut x = _mm_xor_si128(k(h), _mm_setr_epi32(lanes(1), lanes(2), lanes(3), lanes(4)));
+        // crate::math::hash_u32
+        x = _mm_xor_si128(x, _mm_srli_epi32::<16>(x));
+        x = _mm_mullo_epi32(x, k(0x7feb_352d));
+        x = _mm_xor_si128(x, _mm_srli_epi32::<15>(x));
+        x = _mm_mullo_epi32(x, k(0x846c_a68b));
+        x = _mm_xor_si128(x, _mm_srli_epi32::<16>(x));
+        let f = _mm_mul_ps(_mm_cvtepi32_ps(_mm_srli_epi32::<8>(x)), _mm_set1_ps(1.0 / 16_777_216.0));
         let mut out = [0.0f32; 4];
         _mm_storeu_ps(out.as_mut_ptr(), f);
         out
@@ -373,6 +411,31 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The SSE4.1 hashed set is the portable one, bit for bit: hashes of every bit pattern's
+    /// neighbourhood (zero, all ones, single bits) and a million others.
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn hashed_units_sse41_are_the_portable_ones() {
+        if !has_sse41() {
+            return; // nothing to compare on this CPU
+        }
+        let special = [0u32, u32::MAX, 0x8000_0000, 0x7fff_ffff].into_iter().chain((0..32).map(|b| 1 << b));
+        for h in special.chain((0..1_000_000u32).map(|i| hash_u32(i).wrapping_add(i))) {
+            // SAFETY: checked above.
+            let fast = unsafe { sse41::hashed_units(h) };
+            assert_eq!(fast.map(f32::to_bits), hashed_units_portable(h).map(f32::to_bits), "{h:#x}");
+            assert!(fast.iter().all(|u| (0.0..1.0).contains(u)));
+        }
+    }
+
+    #[test]
+    fn hash_words_continue_from_a_state() {
+        for words in [&[][..], &[7], &[1, 2], &[u32::MAX, 0, 5], &[9, 8, 7, 6, 5]] {
+            assert_eq!(words.iter().fold(HASH_START, |h, &w| hash_step(h, w)), hash_words(words));
+        }
+        assert_ne!(hash_words(&[1, 2]), hash_words(&[2, 1]));
     }
 
     #[test]
