@@ -182,7 +182,8 @@ fn sobol_set0(index: u32, seed: u32) -> [f32; 4] {
     sobol_point(index, &SetSeeds::new(seed))
 }
 
-/// Whether this CPU runs [`sse41::sobol_point`] (SSE4.1 and SSSE3; the detection is cached).
+/// Whether this CPU runs the `sse41` module's functions (SSE4.1 and SSSE3; the detection is
+/// cached, and compiled away where the build assumes them, as x86-64-v2 does).
 #[cfg(target_arch = "x86_64")]
 #[inline]
 fn has_sse41() -> bool {

@@ -1072,19 +1072,34 @@ fn merge_triangle_leaves(b2: &mut obvhs::bvh2::Bvh2, is_tri: impl Fn(u32) -> boo
     }
 }
 
-/// Whether the triangles all lie in the plane of the first (not degenerate), each vertex to
-/// within four units of rounding of the largest coordinate: as the two triangles of a
-/// transformed rectangle do. A ray leaving one of them can meet the others then only within
-/// that rounding of where it starts, closer than its spawn offset.
-fn coplanar<'a>(mut tris: impl Iterator<Item = &'a [Vec3; 3]> + Clone) -> bool {
-    let Some(&[a, b, c]) = tris.clone().next() else { return false };
-    let (a, b, c) = (a.as_dvec3(), b.as_dvec3(), c.as_dvec3());
-    let n = (b - a).cross(c - a);
-    let len = n.length();
-    let scale = tris.clone().flatten().map(|v| v.abs().max_element()).fold(0.0f32, f32::max) as f64;
-    let tol = 4.0 * f32::EPSILON as f64 * scale * len;
-    len > 0.0 && tris.all(|t| t.iter().all(|v| n.dot(v.as_dvec3() - a).abs() <= tol))
+/// Whether the triangles lie in one plane, to within [`FLAT`]: each triangle's normal within
+/// `FLAT` radians of the first's, and every vertex within `FLAT` times the triangles' extent
+/// of the first's plane (none degenerate). The two triangles of a transformed rectangle are,
+/// through the rounding of their corners, unless it is small and far from the origin. A ray
+/// leaving one of them can then meet another only if it leaves within about `FLAT` radians of
+/// the plane, where the surface's cosine is below `FLAT` (and its hit would owe as much to the
+/// vertices' rounding as to the geometry).
+fn coplanar<'a>(tris: impl Iterator<Item = &'a [Vec3; 3]> + Clone) -> bool {
+    let unit = |t: &[Vec3; 3]| {
+        let [a, b, c] = t.map(|v| v.as_dvec3());
+        (b - a).cross(c - a).try_normalize()
+    };
+    let Some(first) = tris.clone().next() else { return false };
+    let (Some(n), a) = (unit(first), first[0].as_dvec3()) else { return false };
+    let (lo, hi) = tris
+        .clone()
+        .flatten()
+        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+    let extent = (hi - lo).as_dvec3().length();
+    tris.into_iter().all(|t| {
+        unit(t).is_some_and(|m| m.cross(n).length() <= FLAT)
+            && t.iter().all(|v| n.dot(v.as_dvec3() - a).abs() <= FLAT * extent)
+    })
 }
+
+/// How far from one plane [`coplanar`] lets triangles be (radians, and a fraction of their
+/// extent): about ten times the rounding of a rectangle's corners near the origin.
+const FLAT: f64 = 1e-6;
 
 /// `refs` (all `count` primitives) sorted by the Morton code of their box centres (10 bits an
 /// axis): neighbours in the order are neighbours in space.
@@ -1158,6 +1173,7 @@ impl Accel {
 
     /// The tree over the primitives of `shapes[members]`.
     fn build_over(shapes: &[Shape], members: &[u32], batch: usize) -> Accel {
+        assert!(shapes.len() <= SHAPE as usize + 1, "{} shapes: a BVH names at most 2^29", shapes.len());
         let count: usize = members.iter().map(|&s| shapes[s as usize].prim_count()).sum();
         assert!(count <= MAX_PRIMS, "{count} primitives: one BVH holds at most {MAX_PRIMS}");
         let kernel = Kernel::detect();
@@ -2398,6 +2414,60 @@ mod tests {
         assert!(!coplanar(tris(&folded).iter()));
         let flat = [Vec3::ZERO, Vec3::X, Vec3::X * 2.0];
         assert!(!coplanar([flat, [Vec3::ZERO, Vec3::X, Vec3::Y]].iter()), "a degenerate first triangle");
+        assert!(!coplanar([[Vec3::ZERO, Vec3::X, Vec3::Y], flat].iter()), "a degenerate later triangle");
+        // A 3-degree fold of a small leaf far from the origin, within 4 ulps of its largest
+        // coordinate (what the first tolerance let through; review of c7a24bf).
+        let a = [Vec3::new(1000.0, 0.5, 0.0), Vec3::new(1000.01, 0.5, 0.0), Vec3::new(1000.0, 0.5, 0.01)];
+        let b =
+            [Vec3::new(1000.01, 0.5, 0.0), Vec3::new(1000.01, 0.5004, 0.01), Vec3::new(1000.0, 0.5, 0.01)];
+        assert!(!coplanar([a, b].iter()));
+        // Two parallel planes 1e-4 apart (a decal, a light under a ceiling).
+        let lifted = [Vec3::new(0.0, 0.0, 1e-4), Vec3::new(1.0, 0.0, 1e-4), Vec3::new(0.0, 1.0, 1e-4)];
+        assert!(!coplanar([[Vec3::ZERO, Vec3::X, Vec3::Y], lifted].iter()));
+        // A quad 1e4 from the origin whose fourth corner lies on the plane of the other three
+        // up to its rounding (5e-4 at that distance): 1.5e-4 off, not flat. (A
+        // transformed rectangle's corners there round to a parallelogram, which is.)
+        let [p0, p1, p2] = [
+            Vec3::new(1e4 + 0.1, 1e4 + 0.2, 1e4 + 0.3),
+            Vec3::new(1e4 + 1.7, 1e4 - 0.4, 1e4 + 0.9),
+            Vec3::new(1e4 - 0.3, 1e4 + 1.1, 1e4 + 1.4),
+        ]
+        .map(|v| v.as_dvec3());
+        let p3 = (p0 + (p1 - p0) * 0.37 + (p2 - p0) * 1.3).as_vec3();
+        let (dev, size) = {
+            let n = (p1 - p0).cross(p2 - p0).normalize();
+            (n.dot(p3.as_dvec3() - p0).abs(), (p2 - p1).length())
+        };
+        assert!(dev > 10.0 * FLAT * size, "the fourth corner {dev} off the plane");
+        let [p0, p1, p2] = [p0, p1, p2].map(|v| v.as_vec3());
+        assert!(!coplanar([[p0, p1, p2], [p0, p2, p3]].iter()));
+    }
+
+    /// The review's case against the first tolerance: a small leaf 1000 from the origin,
+    /// folded by 3 degrees; a ray leaving one triangle nearly along it meets the other, with
+    /// and without the skip.
+    #[test]
+    fn a_small_fold_far_away_keeps_its_hit() {
+        let mut m = Mesh::default();
+        m.positions = vec![
+            Vec3::new(1000.0, 0.5, 0.0),
+            Vec3::new(1000.01, 0.5, 0.0),
+            Vec3::new(1000.0, 0.5, 0.01),
+            Vec3::new(1000.01, 0.5004, 0.01),
+        ];
+        m.tris = vec![[0, 1, 2], [1, 3, 2]];
+        let shapes = vec![shape(Geometry::Mesh(m), "fold")];
+        let accel = Accel::build(&shapes);
+        let down = Ray::new(Vec3::new(1000.003, 1.5, 0.003), Vec3::NEG_Y);
+        let hit = accel.closest(&shapes, &down, SpawnedFrom::NOTHING).expect("the first triangle");
+        let it = accel.hit_interaction(&shapes, &down, &hit);
+        assert_eq!(it.prim, 0);
+        let d = Vec3::new(1.0, 0.01, 1.0).normalize();
+        let ray = it.spawn_ray(d);
+        let from = accel.spawned_from(&shapes, &hit, &it, d);
+        assert_eq!(from.leaf, 0, "the fold taken as a plane");
+        let fast = accel.closest(&shapes, &ray, from).map(|h| accel.hit_interaction(&shapes, &ray, &h).prim);
+        assert_eq!(fast, Some(1));
     }
 
     /// Rays spawned as the integrator spawns them, from hits on a placed rectangle, a folded
@@ -2530,8 +2600,13 @@ mod tests {
             }
         }
         assert!(folded_leaf.is_some());
+        // (The cube's faces are leaves of two triangles each: they are skipped too.)
         assert!(
-            skipped[0] > 2000 && skipped[2] > 1000 && skipped[3] > 500 && skipped[4] > 1000,
+            skipped[0] > 2000
+                && skipped[2] > 1000
+                && skipped[3] > 500
+                && skipped[4] > 1000
+                && skipped[5] > 1000,
             "{skipped:?}"
         );
         assert!(into_balls > 1000 && spawned > 50_000, "{into_balls} into balls, {spawned} rays");
