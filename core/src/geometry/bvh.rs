@@ -32,9 +32,9 @@ struct PrimRef {
 
 const TRIANGLE: u32 = 1 << 31;
 const CURVE: u32 = 1 << 30;
-/// Set on the first primitive of a leaf whose triangles all lie in one plane (up to their
-/// vertices' rounding): a ray spawned from one of them cannot meet the leaf again
-/// ([`Accel::spawned_from`]).
+/// Set on the first primitive of a leaf whose triangles all lie in one plane ([`coplanar`]):
+/// a ray spawned from one of them cannot meet the leaf again, unless it leaves within about
+/// [`FLAT`] radians of the plane ([`Accel::spawned_from`]).
 const PLANAR: u32 = 1 << 29;
 /// The shape index of a [`PrimRef`].
 const SHAPE: u32 = !(TRIANGLE | CURVE | PLANAR);
@@ -1487,8 +1487,10 @@ impl Accel {
     /// leaf of triangles in one plane (a rectangle: [`PLANAR`]) or a disk, whichever way the
     /// ray goes, and a sphere alone in its leaf when the ray heads out of it (the line then
     /// meets the sphere only behind its start). All such a leaf could give the ray is a hit on
-    /// itself where it starts, which the spawn offset is there to avoid; the test it no longer
-    /// takes is often the query's first, as the ray starts inside the leaf's box.
+    /// itself where it starts, which the spawn offset is there to avoid (and, in a leaf flat
+    /// only to within [`FLAT`], a hit on a neighbour for a ray leaving within about `FLAT`
+    /// radians of the plane); the test it no longer takes is often the query's first, as the
+    /// ray starts inside the leaf's box.
     #[inline]
     pub fn spawned_from(&self, shapes: &[Shape], hit: &Hit, it: &Interaction, d: Vec3) -> SpawnedFrom {
         let piece = it.leaving();
