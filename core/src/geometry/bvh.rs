@@ -1484,11 +1484,11 @@ impl Accel {
     /// What a ray spawned at `hit` (whose interaction is `it`) along `d` leaves behind, for
     /// [`Accel::closest`] and [`Accel::occluded_from`] to pass over: the fibre piece it leaves
     /// ([`Leaving`]), and the hit's leaf where the ray cannot meet that leaf again. That is a
-    /// leaf of triangles in one plane (a rectangle: [`PLANAR`]) or a disk, whichever way the
+    /// leaf of triangles in one plane (a rectangle: `PLANAR`) or a disk, whichever way the
     /// ray goes, and a sphere alone in its leaf when the ray heads out of it (the line then
     /// meets the sphere only behind its start). All such a leaf could give the ray is a hit on
     /// itself where it starts, which the spawn offset is there to avoid (and, in a leaf flat
-    /// only to within [`FLAT`], a hit on a neighbour for a ray leaving within about `FLAT`
+    /// only to within `FLAT`, a hit on a neighbour for a ray leaving within about `FLAT`
     /// radians of the plane); the test it no longer takes is often the query's first, as the
     /// ray starts inside the leaf's box.
     #[inline]
