@@ -878,11 +878,7 @@ struct Query<'a> {
 
 impl<'a> Query<'a> {
     fn new(shapes: &'a [Shape], ray: &'a Ray) -> Query<'a> {
-        Query::leaving(shapes, ray, None)
-    }
-
-    fn leaving(shapes: &'a [Shape], ray: &'a Ray, leaving: Option<Leaving>) -> Query<'a> {
-        Query::from(shapes, ray, SpawnedFrom { piece: leaving, leaf: 0 })
+        Query::from(shapes, ray, SpawnedFrom::NOTHING)
     }
 
     fn from(shapes: &'a [Shape], ray: &'a Ray, from: SpawnedFrom) -> Query<'a> {
@@ -1351,7 +1347,7 @@ impl Accel {
         }
         let leaving =
             q.leaving.filter(|l| l.instance == Some(index)).map(|l| Leaving { instance: None, ..l });
-        let mut inner = Query::leaving(q.shapes, &local.ray, leaving);
+        let mut inner = Query::from(q.shapes, &local.ray, SpawnedFrom::piece(leaving));
         let (t, k, aux) = self.groups[inst.group as usize].query_with(&mut inner, any)?;
         let world = (t + local.shift) / local.scale;
         if !(world < tmax) {
