@@ -38,7 +38,7 @@ use std::sync::Arc;
 
 use glam::{Mat3, Vec2, Vec3};
 
-use crate::math::{sin_cos_2pi, square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
+use crate::math::{square_to_uniform_sphere, Rgb, INV_FOUR_PI, PI};
 use crate::simd::F4;
 use crate::texture::{Bitmap, FilterType};
 
@@ -396,8 +396,9 @@ impl EnvMap {
         if uu >= 1.0 {
             uu -= 1.0;
         }
-        let (sin_p, cos_p) = sin_cos_2pi(uu);
-        let (sin_t, cos_t) = sin_cos_2pi(0.5 * v);
+        // Both angles' sines and cosines at once (`sin_cos_2pi` of each, bit for bit).
+        let (sin, cos) = F4::sin_cos_2pi(F4::new([uu, 0.5 * v, 0.0, 0.0]));
+        let ([sin_p, sin_t, _, _], [cos_p, cos_t, _, _]) = (sin.to_array(), cos.to_array());
         let l = Vec3::new(sin_t * sin_p, cos_t, -sin_t * cos_p);
         let d = (self.to_world * l).normalize();
         // Radiance and pdf at the same (f32) point, so that they agree on the texel; the pdf
