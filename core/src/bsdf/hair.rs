@@ -159,37 +159,11 @@ impl Hair {
         (sin, safe_sqrt(1.0 - sin * sin), fast_atan2(w.z, w.y))
     }
 
-    /// f |cos| summed over lobes and the pdf of `wi`, for `wo` given by its angles and
-    /// attenuation: the four lobes' Mp and Np are computed together, a lobe a lane, and once
-    /// for both.
-    fn lobes(&self, o: (f32, f32, f32), att: &([Rgb; P_MAX + 1], f32, f32), wi: Vec3) -> (Rgb, f32) {
-        let (sin_o, cos_o, phi_o) = o;
-        let (sin_i, cos_i, phi_i) = Self::angles(wi);
-        let (a, gamma_o, gamma_t) = att;
-        let w = Self::lobe_pdf(a);
-        let (so4, co4) = (F4::splat(sin_o), F4::splat(cos_o));
-        let so = so4 * self.tilt_a + co4 * self.tilt_b;
-        let co = (co4 * self.tilt_a - so4 * self.tilt_b).abs();
-        let m = mp4(cos_i, sin_i, co, so, self.inv_v, self.mp_k);
-        let mn = (m * self.np4(phi_i - phi_o, *gamma_o, *gamma_t)).to_array();
-        let (mut f, mut pdf) = (Rgb::ZERO, 0.0f32);
-        for p in 0..=P_MAX {
-            f = f + a[p] * mn[p];
-            pdf += w[p] * mn[p];
-        }
-        (
-            if f.is_finite() { f.max(Rgb::ZERO) } else { Rgb::ZERO },
-            if pdf.is_finite() { pdf.max(0.0) } else { 0.0 },
-        )
-    }
-
-    /// Np of the four lobes at azimuth difference `phi`: R, TT and TRT the trimmed logistic
-    /// around Phi(p, h) = 2 p gamma_t - 2 gamma_o + p pi, the residual 1 / (2 pi).
+    /// Np of the four lobes at azimuth difference `phi`, each lobe's centre `phi_p`
+    /// ([`HairAt::phi_p`]): R, TT and TRT the trimmed logistic around it, the residual 1 / (2 pi).
     #[inline(always)]
-    fn np4(&self, phi: f32, gamma_o: f32, gamma_t: f32) -> F4 {
+    fn np4(&self, phi: f32, phi_p: F4) -> F4 {
         let s = F4::splat;
-        let p = F4::new([0.0, 1.0, 2.0, 3.0]);
-        let phi_p = s(2.0) * p * s(gamma_t) - s(2.0 * gamma_o) + p * s(PI);
         // phi - Phi(p) wrapped to [-pi, pi) (as rem_euclid, by floor).
         let d = s(phi) - phi_p + s(PI);
         let d = d - s(2.0 * PI) * (d * s(1.0 / (2.0 * PI))).floor() - s(PI);
@@ -211,10 +185,35 @@ impl Hair {
         }
     }
 
+    /// The fibre seen from `wo` at offset `h`: what every evaluation and sample for this wo
+    /// shares, computed once (a path vertex's light sample and BSDF sample both use it).
+    /// (Not inlined, nor are [`HairAt`]'s two methods: inlined into the integrator's loop they
+    /// crowded out what other BSDFs' paths inline there.)
+    #[inline(never)]
+    pub fn at(&self, wo: Vec3, h: f32) -> HairAt<'_> {
+        let (sin_o, cos_o, phi_o) = Self::angles(wo);
+        let (a, gamma_o, gamma_t) = self.attenuation(sin_o, cos_o, h);
+        let (so4, co4) = (F4::splat(sin_o), F4::splat(cos_o));
+        let s = F4::splat;
+        let p = F4::new([0.0, 1.0, 2.0, 3.0]);
+        HairAt {
+            hair: self,
+            sin_o,
+            cos_o,
+            phi_o,
+            w: Self::lobe_pdf(&a),
+            a,
+            gamma_o,
+            gamma_t,
+            so: so4 * self.tilt_a + co4 * self.tilt_b,
+            co: (co4 * self.tilt_a - so4 * self.tilt_b).abs(),
+            phi_p: s(2.0) * p * s(gamma_t) - s(2.0 * gamma_o) + p * s(PI),
+        }
+    }
+
     /// f |cos| and the pdf of `wi`, computed together (they share every costly term).
     pub fn eval_pdf(&self, wo: Vec3, wi: Vec3, h: f32) -> (Rgb, f32) {
-        let o = Self::angles(wo);
-        self.lobes(o, &self.attenuation(o.0, o.1, h), wi)
+        self.at(wo, h).eval_pdf(wi)
     }
 
     pub fn eval(&self, wo: Vec3, wi: Vec3, h: f32) -> Rgb {
@@ -227,11 +226,56 @@ impl Hair {
 
     /// Picks a lobe with `u1` (its remainder then samples the azimuth) and samples Mp with `u2`.
     pub fn sample(&self, wo: Vec3, h: f32, u1: f32, u2: Vec2) -> Option<BsdfSample> {
-        let o = Self::angles(wo);
-        let (sin_o, cos_o, phi_o) = o;
-        let att = self.attenuation(sin_o, cos_o, h);
-        let (a, gamma_o, gamma_t) = att;
-        let lp = Self::lobe_pdf(&a);
+        self.at(wo, h).sample(u1, u2)
+    }
+}
+
+/// A fibre seen from one `wo` ([`Hair::at`]): wo's angles, the lobes' attenuations A_p and
+/// selection probabilities, gamma_o and gamma_t, each lobe's tilted theta_o and its azimuthal
+/// centre Phi(p, h).
+#[derive(Clone, Copy, Debug)]
+pub struct HairAt<'a> {
+    hair: &'a Hair,
+    sin_o: f32,
+    cos_o: f32,
+    phi_o: f32,
+    a: [Rgb; P_MAX + 1],
+    w: [f32; P_MAX + 1],
+    gamma_o: f32,
+    gamma_t: f32,
+    /// theta_o tilted for each lobe: sin and |cos| ([`Hair::tilt`], a lobe a lane).
+    so: F4,
+    co: F4,
+    /// Phi(p, h) = 2 p gamma_t - 2 gamma_o + p pi, a lobe a lane.
+    phi_p: F4,
+}
+
+impl HairAt<'_> {
+    /// f |cos| summed over lobes and the pdf of `wi`: the four lobes' Mp and Np are computed
+    /// together, a lobe a lane, and once for both.
+    #[inline(never)]
+    pub fn eval_pdf(&self, wi: Vec3) -> (Rgb, f32) {
+        let hair = self.hair;
+        let (sin_i, cos_i, phi_i) = Hair::angles(wi);
+        let m = mp4(cos_i, sin_i, self.co, self.so, hair.inv_v, hair.mp_k);
+        let mn = (m * hair.np4(phi_i - self.phi_o, self.phi_p)).to_array();
+        let (mut f, mut pdf) = (Rgb::ZERO, 0.0f32);
+        for p in 0..=P_MAX {
+            f = f + self.a[p] * mn[p];
+            pdf += self.w[p] * mn[p];
+        }
+        (
+            if f.is_finite() { f.max(Rgb::ZERO) } else { Rgb::ZERO },
+            if pdf.is_finite() { pdf.max(0.0) } else { 0.0 },
+        )
+    }
+
+    /// [`Hair::sample`].
+    #[inline(never)]
+    pub fn sample(&self, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+        let hair = self.hair;
+        let (sin_o, cos_o, phi_o) = (self.sin_o, self.cos_o, self.phi_o);
+        let lp = &self.w;
         let mut p = P_MAX;
         let mut u = u1;
         for (k, &w) in lp.iter().enumerate().take(P_MAX) {
@@ -246,17 +290,17 @@ impl Hair {
         } else {
             (u / lp[P_MAX].max(1e-12)).clamp(0.0, 1.0 - f32::EPSILON)
         };
-        let (so, co) = self.tilt(p, sin_o, cos_o);
+        let (so, co) = hair.tilt(p, sin_o, cos_o);
         // Sample Mp (d'Eon et al. 2011): cos theta = 1 + v log(u + (1 - u) e^(-2/v)).
-        let v = self.v[p];
+        let v = hair.v[p];
         let u0 = u2.x.max(1e-5);
-        let cos_t = 1.0 + v * F4::splat(u0 + (1.0 - u0) * self.exp_m2_over_v[p]).ln().to_array()[0];
+        let cos_t = 1.0 + v * F4::splat(u0 + (1.0 - u0) * hair.exp_m2_over_v[p]).ln().to_array()[0];
         let sin_t = safe_sqrt(1.0 - cos_t * cos_t);
         let cos_phi = crate::math::sin_cos_2pi(u2.y).1;
         let sin_i = (-cos_t * so + sin_t * cos_phi * co).clamp(-1.0, 1.0);
         let cos_i = safe_sqrt(1.0 - sin_i * sin_i);
         let dphi = if p < P_MAX {
-            phi_fn(p, gamma_o, gamma_t) + sample_trimmed_logistic(u_phi, self.s, &self.trim)
+            phi_fn(p, self.gamma_o, self.gamma_t) + sample_trimmed_logistic(u_phi, hair.s, &hair.trim)
         } else {
             2.0 * PI * u_phi
         };
@@ -265,7 +309,7 @@ impl Hair {
         if !wi.is_finite() {
             return None;
         }
-        let (f, pdf) = self.lobes(o, &att, wi);
+        let (f, pdf) = self.eval_pdf(wi);
         if !(pdf > 0.0) {
             return None;
         }

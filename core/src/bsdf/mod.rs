@@ -184,7 +184,9 @@ impl Bsdf {
     /// The value and the pdf of `wi` together: light sampling needs both (the pdf for MIS),
     /// and each BSDF computes the terms they share (half vector, Fresnel, D, G1, texture
     /// lookups) once.
-    #[inline]
+    /// (Not inlined: in the integrator's loop, where it is called once a vertex, it crowded
+    /// out the sampler's inlining.)
+    #[inline(never)]
     pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
         match self {
             Bsdf::Diffuse { reflectance } => (diffuse::eval(reflectance, uv, wo, wi), diffuse::pdf(wo, wi)),
@@ -199,6 +201,15 @@ impl Bsdf {
             Bsdf::Dielectric(d) => d.eval_pdf(uv, wo, wi),
             Bsdf::Plastic(p) => p.eval_pdf(uv, wo, wi),
             Bsdf::Hair(h) => h.eval_pdf(wo, wi, hair::Hair::h_from(wo)),
+        }
+    }
+
+    /// This BSDF seen from `wo` at one vertex ([`BsdfAt`]).
+    #[inline]
+    pub fn at(&self, wo: Vec3) -> BsdfAt<'_> {
+        match self {
+            Bsdf::Hair(h) => BsdfAt::Hair(h.at(wo, hair::Hair::h_from(wo))),
+            b => BsdfAt::Other(b, wo),
         }
     }
 
@@ -218,6 +229,37 @@ impl Bsdf {
             Bsdf::Dielectric(d) => d.sample(uv, wo, u1, u2),
             Bsdf::Plastic(p) => p.sample(uv, wo, u1, u2),
             Bsdf::Hair(h) => h.sample(wo, hair::Hair::h_from(wo), u1, u2),
+        }
+    }
+}
+
+/// A BSDF at one path vertex, seen from one `wo` ([`Bsdf::at`]): where a BSDF's evaluations
+/// for a given wo share work, it is done once for the vertex's light sample and its BSDF
+/// sample. Only hair has such work (wo's angles, the lobes' attenuations, their tilts and
+/// azimuthal centres); every other BSDF is evaluated as [`Bsdf::eval_pdf`] and
+/// [`Bsdf::sample`] do, the same values.
+#[derive(Clone, Copy)]
+pub enum BsdfAt<'a> {
+    Hair(hair::HairAt<'a>),
+    Other(&'a Bsdf, Vec3),
+}
+
+impl BsdfAt<'_> {
+    /// [`Bsdf::eval_pdf`] for this vertex's wo.
+    #[inline]
+    pub fn eval_pdf(&self, uv: TexCoord, wi: Vec3) -> (Rgb, f32) {
+        match self {
+            BsdfAt::Hair(h) => h.eval_pdf(wi),
+            BsdfAt::Other(b, wo) => b.eval_pdf(uv, *wo, wi),
+        }
+    }
+
+    /// [`Bsdf::sample`] for this vertex's wo.
+    #[inline]
+    pub fn sample(&self, uv: TexCoord, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+        match self {
+            BsdfAt::Hair(h) => h.sample(u1, u2),
+            BsdfAt::Other(b, wo) => b.sample(uv, *wo, u1, u2),
         }
     }
 }

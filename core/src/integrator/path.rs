@@ -157,6 +157,9 @@ pub fn li(
             }
             _ => bsdf,
         };
+        // What both of the vertex's samples share for this wo, computed once (hair's angles and
+        // attenuations: `Bsdf::at`).
+        let bsdf = bsdf.at(wo);
         let [lu, lv, bu, bv] = s.next_4d();
         // The light's choice past REUSE_LIGHTS lights, lobe choice, roulette, and a spare
         // number for a light's primitive: computed only if used here.
@@ -181,7 +184,7 @@ pub fn li(
                     // (Read a coordinate at a time: `math::apart`.)
                     let ls_wi = apart(ls.wi);
                     let wi = it.frame.to_local(ls_wi);
-                    let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wo, wi);
+                    let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wi);
                     if f != Rgb::ZERO {
                         let shadow = match ls.target {
                             Some((t, dist)) => it.spawn_ray_to(ls_wi, apart(t), dist),
@@ -202,7 +205,7 @@ pub fn li(
         // BSDF sampling.
         st.bsdf_samples += 1;
         let bsel = if traits.chooses_lobe { choices.get(s)[1] } else { 0.0 };
-        let Some(bs) = bsdf.sample(tc, wo, bsel, Vec2::new(bu, bv)) else {
+        let Some(bs) = bsdf.sample(tc, bsel, Vec2::new(bu, bv)) else {
             break;
         };
         // (The sample's vectors read a coordinate at a time: `math::apart`.)
