@@ -165,8 +165,13 @@ pub fn li(
         // number for a light's primitive: computed only if used here.
         let mut choices = s.defer_4d();
 
-        // Next-event estimation: one light, chosen uniformly (as Mitsuba does).
-        if plan.light_sampling && n_lights > 0 && traits.smooth {
+        // Next-event estimation: one light, chosen uniformly (as Mitsuba does). Its light sample
+        // is drawn first, then the BSDF sample, then the light sample is evaluated and its
+        // shadow ray traced: the BSDF sample does not depend on the light sample, so the core
+        // computes it while the light sample's chain of divisions and roots (an environment
+        // map's warp) is still in flight, instead of after the shadow ray. The same numbers in
+        // either order.
+        let nee = if plan.light_sampling && n_lights > 0 && traits.smooth {
             let (k, lu) = if !chooses_light {
                 (0, lu)
             } else if reuses_for_light {
@@ -179,33 +184,39 @@ pub fn li(
             let light = &scene.lights[scene.sampled_lights[k] as usize];
             st.light_samples[light.kind() as usize] += 1;
             let spare = || choices.get(s)[3];
-            if let Some(ls) = light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare) {
-                if ls.pdf > 0.0 && !ls.is_black() {
-                    // (Read a coordinate at a time: `math::apart`.)
-                    let ls_wi = apart(ls.wi);
-                    let wi = it.frame.to_local(ls_wi);
-                    let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wi);
-                    if f != Rgb::ZERO {
-                        let shadow = match ls.target {
-                            Some((t, dist)) => it.spawn_ray_to(ls_wi, apart(t), dist),
-                            None => it.spawn_ray(ls_wi),
-                        };
-                        st.shadow_rays += 1;
-                        let from = scene.accel.spawned_from(&scene.shapes, &hit, &it, ls_wi);
-                        if !scene.occluded_from(&shadow, from) {
-                            let light_pdf = ls.pdf * sel_pdf;
-                            let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
-                            l += beta * f * ls.li(light) * (w / light_pdf);
-                        }
+            light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare).map(|ls| (light, ls))
+        } else {
+            None
+        };
+
+        // BSDF sampling (taken up after next-event estimation).
+        st.bsdf_samples += 1;
+        let bsel = if traits.chooses_lobe { choices.get(s)[1] } else { 0.0 };
+        let bs = bsdf.sample(tc, bsel, Vec2::new(bu, bv));
+
+        if let Some((light, ls)) = nee {
+            if ls.pdf > 0.0 && !ls.is_black() {
+                // (Read a coordinate at a time: `math::apart`.)
+                let ls_wi = apart(ls.wi);
+                let wi = it.frame.to_local(ls_wi);
+                let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wi);
+                if f != Rgb::ZERO {
+                    let shadow = match ls.target {
+                        Some((t, dist)) => it.spawn_ray_to(ls_wi, apart(t), dist),
+                        None => it.spawn_ray(ls_wi),
+                    };
+                    st.shadow_rays += 1;
+                    let from = scene.accel.spawned_from(&scene.shapes, &hit, &it, ls_wi);
+                    if !scene.occluded_from(&shadow, from) {
+                        let light_pdf = ls.pdf * sel_pdf;
+                        let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
+                        l += beta * f * ls.li(light) * (w / light_pdf);
                     }
                 }
             }
         }
 
-        // BSDF sampling.
-        st.bsdf_samples += 1;
-        let bsel = if traits.chooses_lobe { choices.get(s)[1] } else { 0.0 };
-        let Some(bs) = bsdf.sample(tc, bsel, Vec2::new(bu, bv)) else {
+        let Some(bs) = bs else {
             break;
         };
         // (The sample's vectors read a coordinate at a time: `math::apart`.)
