@@ -3,6 +3,8 @@
 #
 #   deploy/build-pgo.sh [OUT]        (default OUT: target/pgo/furnace)
 #
+# Both builds use Cargo.toml's `dist` profile (release with fat LTO and one codegen unit).
+#
 # 1. builds furnace instrumented (-Cprofile-generate) into target/pgo/gen;
 # 2. renders the training scenes with it (below: shipped scenes that the benchmarks do not
 #    use, so that the gains measured on the benchmark scenes are on scenes it was not trained
@@ -14,8 +16,8 @@
 #    the floating-point operations, so a farm of PGO workers still gives furnace render's
 #    bytes), and only then copies it to OUT.
 #
-# Three release builds (the plain one is cargo's usual, reused when it is up to date): about
-# 7 minutes on 2 cores. Exit 0: OUT is built and checked. Measured in docs/BENCHMARKS.md
+# Two dist builds and a release build (the plain one is cargo's usual, reused when it is up
+# to date): about 10-13 minutes on 2 cores. Exit 0: OUT is built and checked. Measured in docs/BENCHMARKS.md
 # ("Issue 15, tenth step"). The profile flags go to the target's crates only (--target), not
 # to build scripts and procedural macros. RUSTFLAGS, if set, is added to them; otherwise the
 # x86-64 rustflags of .cargo/config.toml are (cargo ignores the config when flags come from
@@ -64,7 +66,7 @@ flags() {
 }
 build() { # TARGET_DIR FLAG
     env -u RUSTFLAGS CARGO_ENCODED_RUSTFLAGS="$(flags "$2")" \
-        cargo build --release --locked --quiet --bin furnace --target "$host" --target-dir "$1"
+        cargo build --profile dist --locked --quiet --bin furnace --target "$host" --target-dir "$1"
 }
 
 mkdir -p target/pgo
@@ -72,7 +74,7 @@ data=$(realpath -m target/pgo/data)
 rm -rf "$data"
 step "1/4 instrumented build"
 build target/pgo/gen "-Cprofile-generate=$data"
-gen=$(realpath "target/pgo/gen/$host/release/furnace")
+gen=$(realpath "target/pgo/gen/$host/dist/furnace")
 
 # The training set: every feature the renderer has (triangles, spheres, fibres, instances,
 # textures, the environment map and a sun, every material, the thin lens), none of the
@@ -98,7 +100,7 @@ mv target/pgo/merged.profdata "$profile"
 
 step "3/4 optimised build with the profile"
 build target/pgo/use "-Cprofile-use=$profile"
-pgo=$(realpath "target/pgo/use/$host/release/furnace")
+pgo=$(realpath "target/pgo/use/$host/dist/furnace")
 
 step "4/4 the same bytes as a plain release build"
 # cargo's own release build, wherever its target directory is (CARGO_TARGET_DIR, config).
