@@ -124,6 +124,19 @@ impl SampleStream<'_> {
         self.set_4d(set)
     }
 
+    /// The next 4 dimensions without taking them: the values [`SampleStream::next_4d`] would
+    /// give, which [`SampleStream::skip_4d`] then takes.
+    #[inline]
+    pub fn peek_4d(&self) -> [f32; 4] {
+        self.set_4d(self.set)
+    }
+
+    /// Takes the next 4 dimensions (read already by [`SampleStream::peek_4d`]).
+    #[inline]
+    pub fn skip_4d(&mut self) {
+        self.set += 1;
+    }
+
     /// Takes the next 4 dimensions without computing them: [`Deferred::get`] computes them if
     /// they are used. A set's values depend only on its coordinates, never on whether earlier
     /// sets were computed, so an unused set costs nothing and changes nothing.
