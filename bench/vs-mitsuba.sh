@@ -7,7 +7,7 @@
 #
 # SEEDS=N (default 1): both errors are medians over seeds 0..N-1 (under a small bright sun
 # one seed's relMSE is a lottery of fireflies). FURNACE=BINARY measures that binary instead of
-# building this tree; PGO=1 builds it profile-guided (deploy/build-pgo.sh, about 10-13 minutes, the
+# building this tree; PGO=1 builds it profile-guided (deploy/build-pgo.sh, about 8 minutes, the
 # binary to ship) and measures that. Default scenes: tests/scenes/{cbox,textured,envmap,
 # thinlens,hair}.xml at 64 spp and examples/whimsical.xml at 16. Needs Mitsuba 3:
 # bench/peers/setup.sh (venv outside the repo, $PEERS_VENV, default ../peers-venv).

@@ -31,7 +31,7 @@ fn the_compose_farm_runs_in_docker_as_furnace_render_does() {
 
 /// Issue 15: `deploy/build-pgo.sh` builds the profile-guided binary and checks that it renders
 /// a plain release build's bytes on the five test scenes (it fails otherwise). Two `dist`
-/// builds (fat LTO) and a release build, about 10 to 13 minutes on 2 cores: run by hand with
+/// builds (fat LTO) and a release build, about 8 to 12 minutes on 2 cores: run by hand with
 /// `cargo test --test containers -- --ignored profile_guided --nocapture`.
 #[test]
 #[ignore]
