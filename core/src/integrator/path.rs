@@ -54,11 +54,12 @@ pub fn li(
     // weighs 1), and a black map has nothing to sample.
     let n_lights = scene.sampled_lights.len();
     let sel_pdf = if n_lights > 0 { 1.0 / n_lights as f32 } else { 0.0 };
-    // The light (of at most REUSE_LIGHTS), and an area light's primitive (`Light::sample`),
-    // are picked by reusing the light sample's first number, rescaled within each choice (as
-    // Mitsuba does): the choices and the point on the light then come from one stratified 2-D
-    // sample ([`pick_light`]). Each reuse spends log2(choices) of the number's 23 bits; more
-    // lights are picked with a number of their own.
+    // Whether light sampling picks a light. The light (of at most REUSE_LIGHTS), and an area
+    // light's primitive (`Light::sample`), are picked by reusing the light sample's first
+    // number, rescaled within each choice (as Mitsuba does): the choices and the point on the
+    // light then come from one stratified 2-D sample. Each reuse spends log2(choices) of the
+    // number's 23 bits; more lights are picked with a number of their own.
+    let chooses_light = n_lights > 1;
     let reuses_for_light = n_lights <= REUSE_LIGHTS;
 
     let mut l = Rgb::ZERO;
@@ -100,20 +101,12 @@ pub fn li(
             }
             break;
         };
-        // The vertex's first four numbers; next-event estimation's light, where the light
-        // sample's first number picks it; and that light's sample if it is an infinite light's,
-        // which does not depend on the point it lights. None of these depends on the hit, so
-        // they are computed here, ahead of and beside the hit's interaction (against after it,
-        // plain build: cbox +5%, textured +15%, thinlens +9%, envmap and the fur scenes within
-        // 1%; docs/BENCHMARKS.md, "Issue 15, twenty-first step"). The numbers are taken below,
-        // after the pass through hidden emitters (which takes none); a vertex that samples no
-        // light (a delta BSDF, the last bounce) has wasted the infinite light's sample.
+        // The vertex's first four numbers, computed here and taken below (after the pass
+        // through hidden emitters, which takes none): computed ahead of the hit's interaction,
+        // their table reads and stores are done by the time shading reads them (plain build:
+        // textured +15%, thinlens +3%, the others within 2.5%; docs/BENCHMARKS.md, "Issue 15,
+        // twenty-first step").
         let set = s.peek_4d();
-        let choice = (plan.light_sampling && n_lights > 0 && reuses_for_light).then(|| {
-            let (k, lu) = pick_light(set[0], n_lights);
-            let light = &scene.lights[scene.sampled_lights[k] as usize];
-            (light, lu, light.sample_far(Vec2::new(lu, set[1])))
-        });
         // (Made here, not inside the Option: see `Accel::closest`.)
         let it = scene.accel.hit_interaction(&scene.shapes, &ray, &hit);
         let shape = &scene.shapes[it.shape as usize];
@@ -186,22 +179,19 @@ pub fn li(
         // map's warp) is still in flight, instead of after the shadow ray. The same numbers in
         // either order.
         let nee = if plan.light_sampling && n_lights > 0 && traits.smooth {
-            let (light, lu, far) = match choice {
-                Some(c) => c,
-                None => {
-                    let k = ((choices.get(s)[0] * n_lights as f32) as usize).min(n_lights - 1);
-                    (&scene.lights[scene.sampled_lights[k] as usize], lu, None)
-                }
+            let (k, lu) = if !chooses_light {
+                (0, lu)
+            } else if reuses_for_light {
+                let x = lu * n_lights as f32;
+                let k = (x as usize).min(n_lights - 1);
+                (k, (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON / 2.0))
+            } else {
+                (((choices.get(s)[0] * n_lights as f32) as usize).min(n_lights - 1), lu)
             };
+            let light = &scene.lights[scene.sampled_lights[k] as usize];
             st.light_samples[light.kind() as usize] += 1;
-            let ls = match far {
-                Some(ls) => ls,
-                None => {
-                    let spare = || choices.get(s)[3];
-                    light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare)
-                }
-            };
-            ls.map(|ls| (light, ls))
+            let spare = || choices.get(s)[3];
+            light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare).map(|ls| (light, ls))
         } else {
             None
         };
@@ -259,18 +249,6 @@ pub fn li(
         }
     }
     l
-}
-
-/// The light (of `n_lights`, at most [`REUSE_LIGHTS`]) that a light sample's first number
-/// `u` picks, and `u` rescaled within that choice (one light: `u` itself).
-#[inline]
-fn pick_light(u: f32, n_lights: usize) -> (usize, f32) {
-    if n_lights <= 1 {
-        return (0, u);
-    }
-    let x = u * n_lights as f32;
-    let k = (x as usize).min(n_lights - 1);
-    (k, (x - k as f32).clamp(0.0, 1.0 - f32::EPSILON / 2.0))
 }
 
 /// What [`li`] returns for camera rays that hit nothing (their directions `d`, at most eight),

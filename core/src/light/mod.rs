@@ -285,16 +285,6 @@ impl Light {
                     target: Some((*position, dist)),
                 })
             }
-            far => far.sample_far(u).unwrap_or(None),
-        }
-    }
-
-    /// [`Light::sample`] for a light whose samples do not depend on the point they light
-    /// (directional, constant, environment map): the same sample, drawn without the point;
-    /// `None` for the other lights.
-    #[inline]
-    pub fn sample_far(&self, u: Vec2) -> Option<Option<LightSample>> {
-        Some(match self {
             Light::Directional { direction, irradiance } => Some(LightSample {
                 wi: -*direction,
                 li: Incident::Known(*irradiance),
@@ -310,15 +300,15 @@ impl Light {
                 delta: false,
                 target: None,
             }),
-            Light::Envmap(e) => e.sample_direction(u).map(|(wi, uv, pdf)| {
+            Light::Envmap(e) => {
+                let (wi, uv, pdf) = e.sample_direction(u)?;
                 // Sampled by the map, a direction shines (its density follows the luminance);
                 // sampled uniformly (the ablation), it may not: looked up now, as a black one
                 // needs no shadow ray.
                 let li = if e.uniform { Incident::Known(e.radiance_at(uv)) } else { Incident::EnvMap(uv) };
-                LightSample { wi, li, pdf, delta: false, target: None }
-            }),
-            Light::Area { .. } | Light::Point { .. } | Light::Spot { .. } => return None,
-        })
+                Some(LightSample { wi, li, pdf, delta: false, target: None })
+            }
+        }
     }
 
     /// Solid-angle pdf with which [`Light::sample`] from `p_ref` yields the point `hit` on this
