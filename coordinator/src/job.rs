@@ -24,6 +24,8 @@ pub(crate) struct Snapshot {
     pub(crate) ids: Vec<u32>,
     /// Chunks skipped (noise-target jobs), sorted.
     pub(crate) skipped: Vec<u32>,
+    /// Each tile's sum of its merged passes' estimates ([`Job::tile_sum`]; noise-target jobs).
+    pub(crate) tile_sums: Vec<f64>,
     /// Those not in the previous checkpoint: their stored partials go once this one is written.
     pub(crate) new: Vec<u32>,
     /// Shared with the job until it merges again (copy on write): a snapshot costs no copy.
@@ -66,8 +68,10 @@ pub(crate) struct Job {
     pub(crate) merged: HashSet<u32>,
     /// Chunks not to render: their tile reached the target error (noise-target jobs).
     pub(crate) skipped: HashSet<u32>,
-    /// Each tile's latest error estimate (noise-target jobs; NaN until known).
-    pub(crate) tile_est: Vec<f64>,
+    /// Each tile's sum, over its merged passes in pass order, of each pass's own estimated
+    /// relative MSE (noise-target jobs; see [`Job::follow_up`]). NaN where passes were merged
+    /// whose estimates are not known (a checkpoint written before the sums were stored).
+    pub(crate) tile_sum: Vec<f64>,
     /// The whole image's estimated relative MSE and the samples it was computed at: a pass over
     /// the full accumulation, so status polls reuse it for a second unless the job is complete.
     pub(crate) est_cache: std::cell::Cell<Option<(Instant, u64, f64)>>,
@@ -180,7 +184,7 @@ impl Job {
             accum: Arc::new(accum),
             merged: HashSet::new(),
             skipped: HashSet::new(),
-            tile_est: Vec::new(),
+            tile_sum: Vec::new(),
             est_cache: std::cell::Cell::new(None),
             checkpointed: HashSet::new(),
             since_checkpoint: 0,
@@ -232,7 +236,7 @@ impl Job {
         self.merged = HashSet::new();
         self.skipped = HashSet::new();
         self.checkpointed = HashSet::new();
-        self.tile_est = Vec::new();
+        self.tile_sum = Vec::new();
         self.recent = VecDeque::new();
         self.failures = HashMap::new();
         self.workers = BTreeMap::new(); // the final status lists them
@@ -307,6 +311,7 @@ impl Job {
             job: self.id.clone(),
             ids,
             skipped,
+            tile_sums: self.tile_sum.clone(),
             new,
             accum: self.accum.clone(),
             stats: self.stats.clone(),
@@ -337,7 +342,7 @@ impl Job {
         image
             + self.plan.capacity() * std::mem::size_of::<ChunkSpec>()
             + self.chunks.capacity() * std::mem::size_of::<ChunkState>()
-            + self.tile_est.capacity() * 8
+            + self.tile_sum.capacity() * 8
     }
 
     /// Every merged chunk is in the stored checkpoint.
@@ -350,10 +355,17 @@ impl Job {
         self.merged.len() + self.skipped.len() == self.plan.len()
     }
 
-    /// After chunk `chunk` of a noise-target job is merged: estimate its tile's error from the
-    /// chunk's own samples (its pass alone, so the decision depends only on deterministic
-    /// partials, never on arrival order), then queue the tile's next pass or skip the rest.
-    /// The pass's estimated relative MSE falls as 1/passes: after pass p it is est / (p + 1).
+    /// After chunk `chunk` of a noise-target job is merged: estimate its tile's error, then
+    /// queue the tile's next pass or skip the rest.
+    ///
+    /// Each pass's estimate `e_k` comes from that chunk's own samples (its pass alone, so that
+    /// the decision depends only on deterministic partials, never on arrival order); the
+    /// tile's passes are merged one after another, so their sum is added in pass order. After
+    /// pass p the tile's estimated relative MSE is `(e_0 + ... + e_p) / (p + 1)^2`: the mean
+    /// pass's error over p + 1 passes. A firefly in an early pass keeps its weight in that sum
+    /// (its share of the tile's error falls as 1/(p + 1)^2, as the image's does); judged by the
+    /// last pass alone (`e_p / (p + 1)`, before 2026-11-27), a clean pass after one stopped the
+    /// tile with the firefly in it.
     pub(crate) fn follow_up(&mut self, chunk: u32, acc: &Accum) {
         let Some(target) = self.spec.settings.target_rel_error else { return };
         let n = self.spec.settings.tiles();
@@ -361,8 +373,10 @@ impl Job {
         let r = self.plan[chunk as usize].region;
         let mut own = Accum::new(r.x0, r.y0, r.x1 - r.x0, r.y1 - r.y0);
         own.merge(acc);
-        let est = own.estimated_rel_mse() / (pass + 1) as f64;
-        self.tile_est[tile as usize] = est;
+        let sum = self.tile_sum[tile as usize] + own.estimated_rel_mse_for_stopping();
+        self.tile_sum[tile as usize] = sum;
+        let passes = (pass + 1) as f64;
+        let est = sum / (passes * passes);
         let next = chunk + n;
         if next as usize >= self.plan.len() {
             return;
@@ -378,7 +392,8 @@ impl Job {
     }
 
     /// The samples still to render: for noise-target jobs, each unfinished tile's passes
-    /// predicted from its latest estimate (all its remaining passes while it has none).
+    /// predicted from its mean pass estimate so far (all its remaining passes while it has
+    /// none): `need` passes bring the estimate to `mean / need`.
     pub(crate) fn samples_left(&self) -> u64 {
         let s = &self.spec.settings;
         let Some(target) = s.target_rel_error else { return self.samples_total() - self.samples_done };
@@ -392,9 +407,9 @@ impl Job {
                 .collect();
             let Some(&first) = todo.first() else { continue };
             let done = first / n;
-            let est = self.tile_est[tile as usize];
-            let need = if est.is_finite() {
-                ((est * done as f64 / (target * target)).ceil() as u32).clamp(done + 1, passes)
+            let mean = self.tile_sum[tile as usize] / done as f64;
+            let need = if done > 0 && mean.is_finite() {
+                ((mean / (target * target)).ceil() as u32).clamp(done + 1, passes)
             } else {
                 passes
             };

@@ -133,7 +133,7 @@ impl Picture {
             Picture::Checkpoint { store, job, width, height } => match store.checkpoint(&job) {
                 None => Ok(Accum::new(0, 0, width, height).develop()),
                 Some(bytes) => decode_checkpoint(&bytes, furnace_proto::partial_size_limit(width, height))
-                    .map(|(_, _, acc, _)| acc.develop())
+                    .map(|(_, _, _, acc, _)| acc.develop())
                     .map_err(|e| CoordError::Internal(format!("checkpoint of job {job}: {e}"))),
             },
         }
@@ -357,7 +357,7 @@ impl Loader {
         // The image is made on the first merge (see `Job::accum_mut`).
         let mut job = Job::new(id, spec, state, created, plan, Accum::new(0, 0, 0, 0));
         job.queue = (0..first as u32).collect();
-        job.tile_est = vec![f64::NAN; tiles];
+        job.tile_sum = vec![0.0; tiles];
         job.margin = scene.film.filter.margin();
         job.render_plan = scene.describe().to_string();
         job.scene = self.keep_scenes.then_some(scene);
@@ -381,7 +381,7 @@ impl Loader {
             let n = job.plan.len();
             let (w, h) = (job.spec.settings.width, job.spec.settings.height);
             let limit = furnace_proto::partial_size_limit(w, h);
-            let checked = decode_checkpoint(&bytes, limit).and_then(|(ids, skipped, acc, stats)| {
+            let checked = decode_checkpoint(&bytes, limit).and_then(|(ids, skipped, sums, acc, stats)| {
                 if (acc.x0, acc.y0, acc.width, acc.height) != (0, 0, w, h) {
                     return Err(format!("it covers {}x{}, the job {w}x{h}", acc.width, acc.height));
                 }
@@ -391,11 +391,22 @@ impl Loader {
                 let merged: HashSet<u32> = ids.iter().copied().collect();
                 match skipped.iter().find(|c| merged.contains(c)) {
                     Some(c) => Err(format!("it has chunk {c} both merged and skipped")),
-                    None => Ok((ids, skipped, acc, stats)),
+                    None => Ok((ids, skipped, sums, acc, stats)),
                 }
             });
             match checked {
-                Ok((ids, skipped, acc, stats)) => {
+                Ok((ids, skipped, sums, acc, stats)) => {
+                    // The tiles' sums of their checkpointed passes' estimates; a checkpoint
+                    // without them (written before they were stored) leaves the tiles it has
+                    // passes of unjudged (NaN: never skipped early, so never fewer samples).
+                    let tiles = job.tile_sum.len();
+                    if sums.len() == tiles {
+                        job.tile_sum = sums.iter().map(|&b| f64::from_bits(b)).collect();
+                    } else if tiles > 0 {
+                        for &c in &ids {
+                            job.tile_sum[c as usize % tiles] = f64::NAN;
+                        }
+                    }
                     job.accum = Arc::new(acc);
                     job.stats = stats.unwrap_or_default();
                     job.merged = ids.iter().copied().collect();
@@ -1851,9 +1862,12 @@ impl Snapshot {
     /// it; for a finished job, also its result and final status.
     fn write(&self, store: &dyn Store) -> Result<(), CoordError> {
         let t = Instant::now();
-        let header =
-            serde_json::to_vec(&CheckpointHeader { merged: self.ids.clone(), skipped: self.skipped.clone() })
-                .map_err(|e| CoordError::Internal(e.to_string()))?;
+        let header = serde_json::to_vec(&CheckpointHeader {
+            merged: self.ids.clone(),
+            skipped: self.skipped.clone(),
+            tile_sums: self.tile_sums.iter().map(|s| s.to_bits()).collect(),
+        })
+        .map_err(|e| CoordError::Internal(e.to_string()))?;
         // Encoded as it is written: no copy of the accumulation is made.
         let write = |out: &mut dyn std::io::Write| {
             out.write_all(&(header.len() as u64).to_le_bytes())?;
@@ -1878,19 +1892,24 @@ struct CheckpointHeader {
     merged: Vec<u32>,
     #[serde(default)]
     skipped: Vec<u32>,
+    /// Noise-target jobs: each tile's sum of its merged passes' estimates (`Job::tile_sum`),
+    /// as f64 bits (exact through JSON).
+    #[serde(default)]
+    tile_sums: Vec<u64>,
 }
 
-fn decode_checkpoint(
-    bytes: &[u8],
-    max: usize,
-) -> Result<(Vec<u32>, Vec<u32>, Accum, Option<RenderStats>), String> {
+fn decode_checkpoint(bytes: &[u8], max: usize) -> Result<CheckpointParts, String> {
     let n =
         u64::from_le_bytes(bytes.get(..8).ok_or("truncated")?.try_into().map_err(|_| "truncated")?) as usize;
     let end = n.checked_add(8).filter(|&e| e <= bytes.len()).ok_or("truncated header")?;
     let h: CheckpointHeader = serde_json::from_slice(&bytes[8..end]).map_err(|e| e.to_string())?;
     let (acc, stats) = decode_chunk(&bytes[end..], max).map_err(|e| e.to_string())?;
-    Ok((h.merged, h.skipped, acc, stats))
+    Ok((h.merged, h.skipped, h.tile_sums, acc, stats))
 }
+
+/// What a checkpoint holds: merged chunks, skipped chunks, the tiles' sums (f64 bits), the
+/// accumulation and its statistics.
+type CheckpointParts = (Vec<u32>, Vec<u32>, Vec<u64>, Accum, Option<RenderStats>);
 
 #[cfg(test)]
 mod tests {
@@ -1915,6 +1934,53 @@ mod tests {
             ..Default::default()
         };
         c.submit_scene(tiny_scene(), settings).unwrap()
+    }
+
+    /// A noise-target tile whose first pass holds a firefly and whose second is clean goes on
+    /// to its third pass: the firefly's error is judged with every pass after it (judged by
+    /// the last pass alone, the clean pass stopped the tile). A tile clean from the start
+    /// stops after its first judged passes.
+    #[test]
+    fn a_firefly_keeps_its_tile_sampling() {
+        let run = |firefly: bool| {
+            let coord = Mutex::new(Coordinator::ephemeral().unwrap());
+            let settings = JobSettings {
+                spp: 8,
+                tile_size: 4,
+                spp_per_chunk: 2,
+                target_rel_error: Some(0.1),
+                ..Default::default()
+            };
+            let job = coord.lock().unwrap().submit_scene(tiny_scene(), settings).unwrap();
+            let mut leased = Vec::new();
+            loop {
+                // (Its own statement: the guard must not live through the loop's body.)
+                let lease = coord.lock().unwrap().lease("w", Instant::now());
+                let Some(l) = lease else { break };
+                let pass = l.chunk.id; // one tile: chunk k is pass k
+                leased.push(pass);
+                let r = l.chunk.region;
+                let mut acc = Accum::new(r.x0, r.y0, r.x1 - r.x0, r.y1 - r.y0);
+                for y in r.y0..r.y1 {
+                    for x in r.x0..r.x1 {
+                        for k in 0..(r.s1 - r.s0) as u32 {
+                            let v = if firefly && pass == 0 && (x, y, k) == (1, 2, 0) {
+                                200.0
+                            } else {
+                                0.5 + 0.01 * ((x + 3 * y + k) % 3) as f32
+                            };
+                            acc.count_sample(x, y, furnace_core::math::Rgb::splat(v));
+                            acc.splat(x, y, 1.0, furnace_core::math::Rgb::splat(v));
+                        }
+                    }
+                }
+                accept_partial(&coord, &l.job, l.chunk.id, l.epoch, &acc, None, None).unwrap();
+            }
+            assert_eq!(coord.lock().unwrap().status(&job).unwrap().state, JobState::Done);
+            leased
+        };
+        assert_eq!(run(false), vec![0]);
+        assert_eq!(run(true), vec![0, 1, 2, 3]);
     }
 
     /// A coordinator over a data folder with one stored job `j` (key `k`) of the tiny scene.

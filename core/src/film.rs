@@ -17,6 +17,9 @@ use crate::math::{luminance, Rgb};
 pub const FIXED_BITS: i32 = 40;
 /// Fractional bits of the squared-luminance sums.
 pub const FIXED_BITS_LUM2: i32 = 24;
+/// How many times its region's mean a pixel's mean may be before
+/// [`Accum::estimated_rel_mse_for_stopping`] takes it for a firefly's.
+pub const FIREFLY_MEAN: f64 = 8.0;
 /// The largest radiance (per channel) a single sample may carry.
 pub const MAX_RADIANCE: f32 = 1_099_511_627_776.0; // 2^40
 
@@ -334,6 +337,44 @@ impl Accum {
         sum / n as f64
     }
 
+    /// [`Accum::estimated_rel_mse`] with each pixel's mean, in the denominator, held to at
+    /// most [`FIREFLY_MEAN`] times the mean over all the pixels, for judging when to stop
+    /// sampling. A rare bright sample (a firefly) raises its pixel's mean with its variance:
+    /// relative to its own mean such a pixel reads about 1 however bright the sample, while its
+    /// error relative to the converged pixel is far larger; held to a multiple of its region's
+    /// mean it reads as large as it is. Pixels within that multiple read as before.
+    pub fn estimated_rel_mse_for_stopping(&self) -> f64 {
+        let stats = |p: &PixelSum| {
+            let w = to_f64(p.weight);
+            let mean = luminance(Rgb::new(
+                (to_f64(p.rgb[0]) / w) as f32,
+                (to_f64(p.rgb[1]) / w) as f32,
+                (to_f64(p.rgb[2]) / w) as f32,
+            )) as f64;
+            let c = p.count as f64;
+            let second = to_f64(p.lum2) / (1u64 << FIXED_BITS_LUM2) as f64 / c;
+            // Bessel's correction: the mean is estimated from the same samples.
+            (mean, (second - mean * mean).max(0.0) * c / (c - 1.0) / c)
+        };
+        let judged = || self.pixels.iter().filter(|p| p.count >= 2 && p.weight != 0);
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for p in judged() {
+            sum += stats(p).0;
+            n += 1;
+        }
+        if n == 0 {
+            return f64::INFINITY; // fewer than 2 samples per pixel: unknown
+        }
+        let region = sum / n as f64;
+        let mut rel = 0.0f64;
+        for p in judged() {
+            let (mean, var) = stats(p);
+            let mean = mean.min(FIREFLY_MEAN * region);
+            rel += var / (mean * mean + 1e-2);
+        }
+        rel / n as f64
+    }
+
     /// Total samples counted.
     pub fn sample_count(&self) -> u64 {
         self.pixels.iter().fold(0u64, |n, p| n.saturating_add(p.count))
@@ -532,6 +573,61 @@ mod tests {
             b.merge(p);
         }
         assert_eq!(a, b);
+    }
+
+    /// The stopping estimate reads a firefly as large as its error against the converged pixel
+    /// (relative to the pixel's own, inflated mean it reads about 1, whatever its size), and
+    /// reads pixels within [`FIREFLY_MEAN`] times their region's mean as the plain estimate
+    /// does.
+    #[test]
+    fn a_firefly_counts_in_the_stopping_estimate() {
+        let (w, h, spp) = (16u32, 16u32, 8);
+        // Samples around 0.5, and a pixel four times as bright (within FIREFLY_MEAN).
+        let value = |x: u32, y: u32, k: u32| {
+            let base = if (x, y) == (3, 3) { 2.0 } else { 0.5 };
+            base * (1.0 + 0.2 * (((x * 7 + y * 13 + k * 5) % 9) as f32 / 8.0 - 0.5))
+        };
+        let render = |firefly: Option<f32>| {
+            let mut a = Accum::new(0, 0, w, h);
+            for y in 0..h {
+                for x in 0..w {
+                    for k in 0..spp {
+                        let v = match firefly {
+                            Some(f) if (x, y, k) == (9, 5, 2) => f,
+                            _ => value(x, y, k),
+                        };
+                        a.count_sample(x, y, Rgb::splat(v));
+                        a.splat(x, y, 1.0, Rgb::splat(v));
+                    }
+                }
+            }
+            a
+        };
+        let clean = render(None);
+        let (plain, stopping) = (clean.estimated_rel_mse(), clean.estimated_rel_mse_for_stopping());
+        assert!(plain > 0.0 && (stopping - plain).abs() <= 1e-12 * plain, "{plain} {stopping}");
+        for f in [100.0f32, 1000.0, 10_000.0] {
+            let a = render(Some(f));
+            // The firefly pixel's squared error against its converged value, relative to it as
+            // `Image::compare` takes it, averaged over the image: what it adds to the relMSE.
+            let truth = value(9, 5, 0) as f64;
+            let mean = (f as f64 + (0..spp).filter(|&k| k != 2).map(|k| value(9, 5, k) as f64).sum::<f64>())
+                / spp as f64;
+            let adds = (mean - truth).powi(2) / (truth * truth + 1e-2) / (w * h) as f64;
+            let (plain_f, stopping_f) =
+                (a.estimated_rel_mse() - plain, a.estimated_rel_mse_for_stopping() - plain);
+            assert!(
+                plain_f < 0.01 && plain_f < adds / 200.0,
+                "firefly {f}: the plain estimate adds {plain_f}"
+            );
+            // Held to FIREFLY_MEAN times the region's mean (which the firefly raises too), the
+            // pixel's mean still reads larger than the converged value: the estimate stays below
+            // the truth, but well above the plain one and above any usual target (0.1^2).
+            assert!(
+                stopping_f < adds && stopping_f > 8.0 * plain_f && stopping_f > 0.02,
+                "firefly {f}: the stopping estimate adds {stopping_f}, the firefly {adds}, the plain estimate {plain_f}"
+            );
+        }
     }
 
     #[test]
