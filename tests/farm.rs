@@ -197,6 +197,47 @@ fn a_noise_target_job_survives_a_restart_with_the_same_bytes() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A noise-target job whose stored partial of a tile's pass is unusable, while the tile's
+/// next pass is stored and good: the next pass waits for the one before it (it is judged after
+/// it), the job ends, and its bytes are those of the job run without interruption.
+#[test]
+fn a_noise_target_pass_after_a_lost_one_renders_again_in_order() {
+    let scene = load("small.xml", &[]);
+    let settings = JobSettings {
+        spp: 256,
+        tile_size: 4,
+        spp_per_chunk: 4,
+        seed: 5,
+        target_rel_error: Some(0.15),
+        ..JobSettings::default()
+    };
+    let dir = scratch("target-lost-pass");
+    let coord = open_coordinator(&dir.join("a"));
+    let job = submit_small(&coord, &scene, settings.clone());
+    render_leases(&coord, &scene, usize::MAX);
+    let tiles = coord.lock().unwrap().status(&job).unwrap().settings.tiles();
+    let expect = std::fs::read(dir.join("a/jobs").join(&job).join("result.exr")).unwrap();
+    drop(coord);
+    // No checkpoint: every merged chunk's partial stays on disk.
+    let coord = open_coordinator(&dir.join("b"));
+    coord.lock().unwrap().checkpoint_interval = std::time::Duration::from_secs(3600);
+    let job = submit_small(&coord, &scene, settings.clone());
+    render_leases(&coord, &scene, tiles as usize * 3 / 2);
+    drop(coord);
+    let partials = dir.join("b/jobs").join(&job).join("partials");
+    let stored = |c: u32| partials.join(format!("{c}.zst"));
+    let next = (tiles..tiles * 2).find(|&c| stored(c).exists() && stored(c - tiles).exists());
+    let next = next.expect("a tile with its first two passes stored");
+    std::fs::write(stored(next - tiles), b"garbage").unwrap();
+    let coord = open_coordinator(&dir.join("b"));
+    render_leases(&coord, &scene, usize::MAX);
+    let s = coord.lock().unwrap().status(&job).unwrap();
+    assert_eq!(s.state, JobState::Done, "{s:?}");
+    let got = std::fs::read(dir.join("b/jobs").join(&job).join("result.exr")).unwrap();
+    assert!(got == expect, "result differs after a lost pass (chunk {})", next - tiles);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// Restart never fails because of one job's files: a stored partial that is garbage, one of
 /// the wrong chunk, a temporary file of an interrupted write, scene files gone, then a garbage
 /// checkpoint. Each unusable file is moved to `quarantine/`, named in the job's

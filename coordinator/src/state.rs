@@ -353,11 +353,12 @@ impl Loader {
         let n = plan.len();
         // Noise-target jobs hand out a tile's next pass only once its last one is judged.
         let first = if s.target_rel_error.is_some() { (s.tiles() as usize).min(n) } else { n };
-        let tiles = s.tiles() as usize;
+        // Each tile's sum of its passes' estimates, for noise-target jobs.
+        let sums = if s.target_rel_error.is_some() { s.tiles() as usize } else { 0 };
         // The image is made on the first merge (see `Job::accum_mut`).
         let mut job = Job::new(id, spec, state, created, plan, Accum::new(0, 0, 0, 0));
         job.queue = (0..first as u32).collect();
-        job.tile_sum = vec![0.0; tiles];
+        job.tile_sum = vec![0.0; sums];
         job.margin = scene.film.filter.margin();
         job.render_plan = scene.describe().to_string();
         job.scene = self.keep_scenes.then_some(scene);
@@ -419,8 +420,13 @@ impl Loader {
                 }
             }
         }
+        // A noise-target tile's passes are judged one after another (`Job::follow_up`): a pass
+        // whose previous one is not merged (its stored partial was unusable) renders again
+        // after it instead. (Stored partials come in chunk order, so a tile's in pass order.)
+        let passes_of = job.spec.settings.target_rel_error.map(|_| job.spec.settings.tiles());
         for chunk in self.store.partials(&id) {
-            if job.merged.contains(&chunk) || chunk as usize >= job.plan.len() {
+            let waits = passes_of.is_some_and(|n| chunk >= n && !job.merged.contains(&(chunk - n)));
+            if job.merged.contains(&chunk) || chunk as usize >= job.plan.len() || waits {
                 self.store.drop_partial(&id, chunk);
                 continue;
             }
@@ -1893,8 +1899,8 @@ struct CheckpointHeader {
     #[serde(default)]
     skipped: Vec<u32>,
     /// Noise-target jobs: each tile's sum of its merged passes' estimates (`Job::tile_sum`),
-    /// as f64 bits (exact through JSON).
-    #[serde(default)]
+    /// as f64 bits (exact through JSON); absent for other jobs.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     tile_sums: Vec<u64>,
 }
 
@@ -1936,16 +1942,18 @@ mod tests {
         c.submit_scene(tiny_scene(), settings).unwrap()
     }
 
-    /// A noise-target tile whose first pass holds a firefly and whose second is clean goes on
-    /// to its third pass: the firefly's error is judged with every pass after it (judged by
-    /// the last pass alone, the clean pass stopped the tile). A tile clean from the start
-    /// stops after its first judged passes.
+    /// A noise-target tile of eight passes whose first holds a firefly: the firefly's error
+    /// (the first pass's estimate, about 0.21) is judged with every pass after it, its share
+    /// falling as 1/passes^2, so the tile stops after five passes (0.21 / 25 < 0.1^2). Judged
+    /// by the last pass alone the second, clean pass stopped it; a sum over the passes rather
+    /// than their square, or none at all, would render all eight. A tile clean from the start
+    /// stops after its first pass.
     #[test]
     fn a_firefly_keeps_its_tile_sampling() {
         let run = |firefly: bool| {
             let coord = Mutex::new(Coordinator::ephemeral().unwrap());
             let settings = JobSettings {
-                spp: 8,
+                spp: 16,
                 tile_size: 4,
                 spp_per_chunk: 2,
                 target_rel_error: Some(0.1),
@@ -1980,7 +1988,7 @@ mod tests {
             leased
         };
         assert_eq!(run(false), vec![0]);
-        assert_eq!(run(true), vec![0, 1, 2, 3]);
+        assert_eq!(run(true), vec![0, 1, 2, 3, 4]);
     }
 
     /// A coordinator over a data folder with one stored job `j` (key `k`) of the tiny scene.

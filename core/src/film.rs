@@ -201,6 +201,26 @@ impl PixelSum {
         self.weight = self.weight.wrapping_add(to_fixed(w64));
     }
 
+    /// The pixel's mean luminance and that mean's variance: the sample luminance's variance
+    /// (from the squared sums and the filtered mean, with Bessel's correction) over the sample
+    /// count. None for a pixel with fewer than 2 samples or no weight.
+    fn mean_and_variance(&self) -> Option<(f64, f64)> {
+        if self.count < 2 || self.weight == 0 {
+            return None;
+        }
+        let w = to_f64(self.weight);
+        let mean = luminance(Rgb::new(
+            (to_f64(self.rgb[0]) / w) as f32,
+            (to_f64(self.rgb[1]) / w) as f32,
+            (to_f64(self.rgb[2]) / w) as f32,
+        )) as f64;
+        let c = self.count as f64;
+        let second = to_f64(self.lum2) / (1u64 << FIXED_BITS_LUM2) as f64 / c;
+        // Bessel's correction: the mean is estimated from the same samples.
+        let var = (second - mean * mean).max(0.0) * c / (c - 1.0);
+        Some((mean, var / c))
+    }
+
     /// Counts one sample of radiance `l` generated in this pixel.
     #[inline]
     fn count_sample(&mut self, l: Rgb) {
@@ -314,21 +334,8 @@ impl Accum {
     /// high; tests state the factor.
     pub fn estimated_rel_mse(&self) -> f64 {
         let (mut sum, mut n) = (0.0f64, 0usize);
-        for p in &self.pixels {
-            if p.count < 2 || p.weight == 0 {
-                continue;
-            }
-            let w = to_f64(p.weight);
-            let mean = luminance(Rgb::new(
-                (to_f64(p.rgb[0]) / w) as f32,
-                (to_f64(p.rgb[1]) / w) as f32,
-                (to_f64(p.rgb[2]) / w) as f32,
-            )) as f64;
-            let c = p.count as f64;
-            let second = to_f64(p.lum2) / (1u64 << FIXED_BITS_LUM2) as f64 / c;
-            // Bessel's correction: the mean is estimated from the same samples.
-            let var = (second - mean * mean).max(0.0) * c / (c - 1.0);
-            sum += var / c / (mean * mean + 1e-2);
+        for (mean, var) in self.pixels.iter().filter_map(PixelSum::mean_and_variance) {
+            sum += var / (mean * mean + 1e-2);
             n += 1;
         }
         if n == 0 {
@@ -341,25 +348,16 @@ impl Accum {
     /// most [`FIREFLY_MEAN`] times the mean over all the pixels, for judging when to stop
     /// sampling. A rare bright sample (a firefly) raises its pixel's mean with its variance:
     /// relative to its own mean such a pixel reads about 1 however bright the sample, while its
-    /// error relative to the converged pixel is far larger; held to a multiple of its region's
-    /// mean it reads as large as it is. Pixels within that multiple read as before.
+    /// error relative to the converged pixel is far larger. Held to a multiple k of its
+    /// region's mean, it reads at least 1/k^2 of that error where the region's mean is near
+    /// the converged pixel's (less where the firefly lifts the region's mean too, as in a
+    /// region of few pixels): far more than 1, so its tile goes on. Pixels within that
+    /// multiple read as before, bit for bit.
     pub fn estimated_rel_mse_for_stopping(&self) -> f64 {
-        let stats = |p: &PixelSum| {
-            let w = to_f64(p.weight);
-            let mean = luminance(Rgb::new(
-                (to_f64(p.rgb[0]) / w) as f32,
-                (to_f64(p.rgb[1]) / w) as f32,
-                (to_f64(p.rgb[2]) / w) as f32,
-            )) as f64;
-            let c = p.count as f64;
-            let second = to_f64(p.lum2) / (1u64 << FIXED_BITS_LUM2) as f64 / c;
-            // Bessel's correction: the mean is estimated from the same samples.
-            (mean, (second - mean * mean).max(0.0) * c / (c - 1.0) / c)
-        };
-        let judged = || self.pixels.iter().filter(|p| p.count >= 2 && p.weight != 0);
+        let judged = || self.pixels.iter().filter_map(PixelSum::mean_and_variance);
         let (mut sum, mut n) = (0.0f64, 0usize);
-        for p in judged() {
-            sum += stats(p).0;
+        for (mean, _) in judged() {
+            sum += mean;
             n += 1;
         }
         if n == 0 {
@@ -367,8 +365,7 @@ impl Accum {
         }
         let region = sum / n as f64;
         let mut rel = 0.0f64;
-        for p in judged() {
-            let (mean, var) = stats(p);
+        for (mean, var) in judged() {
             let mean = mean.min(FIREFLY_MEAN * region);
             rel += var / (mean * mean + 1e-2);
         }
