@@ -142,22 +142,25 @@ fn a_coordinator_restarted_mid_job_and_after_the_last_merge_finishes_the_job() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// small.xml to a target error: tiles of 4 pixels, passes of 4 spp, at most 256.
+fn noise_target_settings() -> JobSettings {
+    JobSettings {
+        spp: 256,
+        tile_size: 4,
+        spp_per_chunk: 4,
+        seed: 5,
+        target_rel_error: Some(0.15),
+        ..JobSettings::default()
+    }
+}
+
 /// A noise-target job through a persisted coordinator: its tiles stop at different passes,
 /// and a crash and restart mid-job (checkpoint with skipped chunks, partials replayed and
 /// re-judged) gives the same bytes as the job run without interruption.
 #[test]
 fn a_noise_target_job_survives_a_restart_with_the_same_bytes() {
     let scene = load("small.xml", &[]);
-    let settings = JobSettings {
-        width: 0,
-        height: 0,
-        spp: 256,
-        tile_size: 4,
-        spp_per_chunk: 4,
-        seed: 5,
-        priority: 0,
-        target_rel_error: Some(0.15),
-    };
+    let settings = noise_target_settings();
     let run = |coord: &Mutex<Coordinator>, limit| render_leases(coord, &scene, limit);
     let job_of = |data: &Path| {
         let coord = open_coordinator(data);
@@ -203,14 +206,7 @@ fn a_noise_target_job_survives_a_restart_with_the_same_bytes() {
 #[test]
 fn a_noise_target_pass_after_a_lost_one_renders_again_in_order() {
     let scene = load("small.xml", &[]);
-    let settings = JobSettings {
-        spp: 256,
-        tile_size: 4,
-        spp_per_chunk: 4,
-        seed: 5,
-        target_rel_error: Some(0.15),
-        ..JobSettings::default()
-    };
+    let settings = noise_target_settings();
     let dir = scratch("target-lost-pass");
     let coord = open_coordinator(&dir.join("a"));
     let job = submit_small(&coord, &scene, settings.clone());

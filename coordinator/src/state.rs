@@ -1977,8 +1977,9 @@ mod tests {
                             } else {
                                 0.5 + 0.01 * ((x + 3 * y + k) % 3) as f32
                             };
-                            acc.count_sample(x, y, furnace_core::math::Rgb::splat(v));
-                            acc.splat(x, y, 1.0, furnace_core::math::Rgb::splat(v));
+                            let l = furnace_core::math::Rgb::splat(v);
+                            acc.count_sample(x, y, l);
+                            acc.splat(x, y, 1.0, l);
                         }
                     }
                 }
