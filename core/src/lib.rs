@@ -24,7 +24,5 @@ pub use film::{Accum, Dropped};
 pub use image_io::Image;
 pub use integrator::Stats;
 pub use plan::{PlanDescription, Techniques};
-pub use render::{
-    accum_rect, plan_regions, render_image, render_region, render_region_parallel_until, Region,
-};
+pub use render::{accum_rect, plan_regions, render_image, render_region, render_region_on, Region};
 pub use scene::{LoadLimits, Scene, SceneError, FARM_SCENE_BYTES};

@@ -202,30 +202,58 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
     (acc, st)
 }
 
-/// Renders one region with the current rayon pool: bands of two rows in parallel, merged
-/// exactly, so the result is bit-identical to [`render_region`]. Gives up (`None`) once `stop`
-/// is set: bands not begun by then are not rendered (a worker whose lease was revoked stops
-/// within a band).
-pub fn render_region_parallel_until(
+/// Rows of one band: the unit of work the threads share within a region.
+const BAND_ROWS: u32 = 2;
+
+/// Renders one region on `pool`: bands of [`BAND_ROWS`] rows, taken in turn by as many tasks
+/// as the pool has threads and merged exactly, so the result is bit-identical to
+/// [`render_region`]. Gives up (`None`) once `stop` is set: bands not begun by then are not
+/// rendered (a worker whose lease was revoked stops within a band).
+///
+/// The calling thread (a worker's chunk thread, outside the pool) waits for the tasks; no
+/// pool thread ever waits inside a region. A pool thread blocked in a fork-join (rayon's
+/// `install` and `join`) runs other regions' work on top of its own while it waits, so its
+/// region ends only when that work has: chunks then finished in clumps and the pool ran dry
+/// between them. Here a thread that finds no band left simply takes the next task queued, the
+/// next region's (docs/BENCHMARKS.md, "Issue 15, twenty-third step").
+pub fn render_region_on(
+    pool: &rayon::ThreadPool,
     scene: &Scene,
     r: &Region,
     seed: u64,
     stop: &std::sync::atomic::AtomicBool,
 ) -> Option<(Accum, Stats)> {
+    use std::sync::atomic::{AtomicBool, AtomicU32, Ordering::Relaxed};
     let (ax, ay, aw, ah) = accum_rect(scene, r);
-    let bands: Vec<Region> =
-        (r.y0..r.y1).step_by(2).map(|y| Region { y0: y, y1: (y + 2).min(r.y1), ..*r }).collect();
-    let parts: Vec<(Accum, Stats)> = bands
-        .par_iter()
-        .map(|b| (!stop.load(std::sync::atomic::Ordering::Relaxed)).then(|| render_region(scene, b, seed)))
-        .collect::<Option<_>>()?;
-    let mut acc = Accum::new(ax, ay, aw, ah);
-    let mut st = Stats::default();
-    for (a, s) in &parts {
-        acc.merge(a);
-        st.merge(s);
+    let bands = (r.y1.saturating_sub(r.y0)).div_ceil(BAND_ROWS);
+    let next = AtomicU32::new(0);
+    let stopped = AtomicBool::new(false);
+    let total = Mutex::new((Accum::new(ax, ay, aw, ah), Stats::default()));
+    let tasks = pool.current_num_threads().min(bands as usize);
+    pool.in_place_scope(|s| {
+        for _ in 0..tasks {
+            s.spawn(|_| loop {
+                let b = next.fetch_add(1, Relaxed);
+                if b >= bands {
+                    return;
+                }
+                if stop.load(Relaxed) {
+                    stopped.store(true, Relaxed);
+                    return;
+                }
+                let y0 = r.y0 + b * BAND_ROWS;
+                let band = Region { y0, y1: (y0 + BAND_ROWS).min(r.y1), ..*r };
+                let (a, st) = render_region(scene, &band, seed);
+                let mut t = total.lock().unwrap_or_else(|e| e.into_inner());
+                t.0.merge(&a);
+                t.1.merge(&st);
+            });
+        }
+    });
+    if stopped.load(Relaxed) {
+        return None;
     }
-    Some((acc, st))
+    Some(total.into_inner().unwrap_or_else(|e| e.into_inner()))
 }
 
 /// Renders the whole image at `spp` samples per pixel on the current rayon pool, calling
@@ -299,6 +327,41 @@ mod tests {
                         packed.1, alone.1,
                         "{name} {extra} {kernel:?} samples {s0}..{s1}: counts differ"
                     );
+                }
+            }
+        }
+    }
+
+    /// A region rendered in bands by a pool's tasks is the region rendered alone, bit for bit
+    /// and count for count: for pools of 1 to 5 threads (more tasks than bands, fewer, as
+    /// many) and regions of 0, 1, 2, 7 and 20 rows; a box filter and a wider one (whose bands
+    /// splat into each other's rows). A stop set before the render gives
+    /// nothing (a region of no rows has nothing to stop).
+    #[test]
+    fn a_region_rendered_in_bands_on_a_pool_is_the_region_rendered_alone() {
+        use std::sync::atomic::AtomicBool;
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes");
+        for name in ["cbox.xml", "small.xml"] {
+            let scene = Scene::load(&dir.join(name), &[]).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+            for threads in 1..=5 {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+                for rows in [0, 1, 2, 7, 20] {
+                    let r = Region {
+                        x0: w / 2 - 9,
+                        y0: h / 2 - 10,
+                        x1: w / 2 + 9,
+                        y1: h / 2 - 10 + rows,
+                        s0: 2,
+                        s1: 6,
+                    };
+                    let go = AtomicBool::new(false);
+                    let banded = render_region_on(&pool, &scene, &r, 5, &go).expect("not stopped");
+                    let alone = render_region(&scene, &r, 5);
+                    assert!(banded.0 == alone.0, "{name}, {threads} threads, {rows} rows: images differ");
+                    assert_eq!(banded.1, alone.1, "{name}, {threads} threads, {rows} rows: counts differ");
+                    let stop = AtomicBool::new(true);
+                    assert!(render_region_on(&pool, &scene, &r, 5, &stop).is_none() || rows == 0);
                 }
             }
         }

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
-use furnace_core::{render_region, render_region_parallel_until, Accum, Scene, Stats};
+use furnace_core::{render_region, render_region_on, Accum, Scene, Stats};
 use furnace_proto::{encode_chunk, ApiError, Bundle, ChunkSpec, FailureReport, Lease, LeaseRequest};
 pub use furnace_proto::{Link, Uploaded};
 use reqwest::blocking::{Client, RequestBuilder, Response};
@@ -83,11 +83,12 @@ pub fn run(cfg: WorkerConfig) -> Result<u64, WorkerError> {
 }
 
 /// Chunks in flight for `threads` render threads: half the threads, at least 2 and at most
-/// [`MAX_AUTO_SLOTS`]. A chunk is rendered in bands of two rows (32 for a 64-pixel tile); with
-/// too few chunks in flight, the threads that finish their bands wait for a chunk's last band
-/// and its upload before the next chunk brings work. Measured on 16 cores
-/// (docs/BENCHMARKS.md, "Multi-core scaling"): at 16 threads, 8 chunks render 16 to 31% more
-/// samples a second than 2, and 4 chunks about half that. Each chunk in flight holds its
+/// [`MAX_AUTO_SLOTS`]. A chunk is rendered in bands of two rows (32 for a 64-pixel tile) that
+/// the pool's threads take in turn ([`render_region_on`]); with too few chunks in flight, the
+/// threads that find no band left wait for a chunk's upload and the next lease. Measured on
+/// 16 cores (docs/BENCHMARKS.md, "Multi-core scaling"), when a chunk's bands were a fork-join
+/// on the pool: at 16 threads, 8 chunks render 16 to 31% more samples a second than 2, and 4
+/// chunks about half that. Each chunk in flight holds its
 /// accumulation (its tile's pixels) and, while idle, one lease request at the coordinator.
 pub fn auto_slots(threads: usize) -> usize {
     (threads / 2).clamp(2, MAX_AUTO_SLOTS)
@@ -176,7 +177,7 @@ fn render_and_upload(
     // A panic while rendering is this chunk's failure, reported with its message; the worker
     // lives on.
     let rendered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        pool.install(|| render_region_parallel_until(scene, &lease.chunk.region, lease.settings.seed, lost))
+        render_region_on(pool, scene, &lease.chunk.region, lease.settings.seed, lost)
     }));
     let (acc, st) = match rendered {
         Ok(Some(r)) => r,
