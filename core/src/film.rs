@@ -149,6 +149,21 @@ impl Filter {
         (self.radius() - 0.5).max(0.0).ceil() as u32
     }
 
+    /// The pixels `lo..=hi` along one axis (of `len`) that a sample at `p` (in pixels), taken
+    /// in pixel `x`, splats to: those whose centres lie within the radius, and never more than
+    /// [`Filter::margin`] from `x`. Without that bound a sample at the far edge of its pixel,
+    /// where `x + offset` rounds up to `x + 1`, would reach one pixel further when the radius
+    /// is a whole number plus a half (a box of 1.5): a tile's accumulation, grown by the
+    /// margin, would drop that splat and the whole image keep it, so a farm's image and
+    /// `furnace render`'s would differ. Such a splat sits exactly at the radius.
+    #[inline]
+    pub fn splat_span(&self, x: u32, p: f32, len: u32) -> (i64, i64) {
+        let (r, m, x) = (self.radius(), self.margin() as i64, x as i64);
+        let lo = (crate::math::ceil(p - r - 0.5) as i64).max(0).max(x - m);
+        let hi = (crate::math::floor(p + r - 0.5) as i64).min(len as i64 - 1).min(x + m);
+        (lo, hi)
+    }
+
     #[inline]
     pub fn eval(&self, x: f32) -> f32 {
         match *self {
@@ -634,5 +649,51 @@ mod tests {
         assert!(g.eval(0.0) > 0.99);
         assert_eq!(g.margin(), 2);
         assert_eq!(Filter::Box { radius: 0.5 }.margin(), 0);
+    }
+
+    /// A sample splats only within the margin of its own pixel, so that a tile grown by the
+    /// margin catches every splat its samples make. The hard case: an offset just below 1,
+    /// where `x + offset` rounds up to `x + 1`, and a radius of a whole number plus a half,
+    /// where the pixel one further then lies exactly at the radius (a box filter weighs it 1).
+    #[test]
+    fn a_sample_splats_only_within_the_margin_of_its_pixel() {
+        let below_one = 1.0 - f32::EPSILON / 2.0;
+        for filter in [
+            Filter::Box { radius: 0.5 },
+            Filter::Box { radius: 1.5 },
+            Filter::Box { radius: 2.5 },
+            Filter::Box { radius: 1.7 },
+            Filter::Gaussian { stddev: 0.375 },
+            Filter::Gaussian { stddev: 0.5 },
+        ] {
+            let m = filter.margin() as i64;
+            let mut rounded_up = 0;
+            for x in 0..4096u32 {
+                for offset in [0.0, 0.5, below_one] {
+                    let p = x as f32 + offset;
+                    rounded_up += (p == (x + 1) as f32) as u32;
+                    let (lo, hi) = filter.splat_span(x, p, 4096);
+                    assert!(
+                        lo >= x as i64 - m && hi <= x as i64 + m,
+                        "{filter:?}: x {x}, p {p}: {lo}..={hi}"
+                    );
+                    // Every pixel of the span has its centre within the radius, and every one
+                    // within the margin whose centre is strictly within the radius is in it.
+                    for j in (x as i64 - m).max(0)..=(x as i64 + m).min(4095) {
+                        let d = (p - (j as f32 + 0.5)).abs();
+                        if (lo..=hi).contains(&j) {
+                            assert!(d <= filter.radius(), "{filter:?}: x {x}, p {p}: pixel {j} at {d}");
+                        } else {
+                            assert!(
+                                d >= filter.radius(),
+                                "{filter:?}: x {x}, p {p}: pixel {j} at {d} left out"
+                            );
+                        }
+                    }
+                }
+            }
+            // The hard case is exercised: x + offset rounds up for every x from 1 on.
+            assert!(rounded_up > 4000, "{filter:?}: {rounded_up}");
+        }
     }
 }

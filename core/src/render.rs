@@ -88,8 +88,7 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
     let cam = &scene.camera;
     let filter = film.filter;
     let own_pixel = matches!(filter, Filter::Box { radius } if radius == 0.5);
-    let radius = filter.radius();
-    let (w, h) = (film.crop_width as i64, film.crop_height as i64);
+    let (w, h) = (film.crop_width, film.crop_height);
     let mut cands = Candidates::default();
     let bundles = cam.pixel_bundles();
     for y in r.y0..r.y1 {
@@ -112,10 +111,8 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
                 acc.count_sample(x, y, l);
                 // Splat to every pixel whose centre lies within the filter radius.
                 let (px, py) = (x as f32 + fx, y as f32 + fy);
-                let jx0 = (crate::math::ceil(px - radius - 0.5) as i64).max(0);
-                let jx1 = (crate::math::floor(px + radius - 0.5) as i64).min(w - 1);
-                let jy0 = (crate::math::ceil(py - radius - 0.5) as i64).max(0);
-                let jy1 = (crate::math::floor(py + radius - 0.5) as i64).min(h - 1);
+                let (jx0, jx1) = filter.splat_span(x, px, w);
+                let (jy0, jy1) = filter.splat_span(y, py, h);
                 for jy in jy0..=jy1 {
                     let wy = filter.eval(py - (jy as f32 + 0.5));
                     if wy == 0.0 {
@@ -333,10 +330,11 @@ mod tests {
     }
 
     /// A region rendered in bands by a pool's tasks is the region rendered alone, bit for bit
-    /// and count for count: for pools of 1 to 5 threads (more tasks than bands, fewer, as
+    /// and count for count: for pools of 1 to 5 threads (more threads than bands, fewer, as
     /// many) and regions of 0, 1, 2, 7 and 20 rows; a box filter and a wider one (whose bands
     /// splat into each other's rows). A stop set before the render gives
-    /// nothing (a region of no rows has nothing to stop).
+    /// nothing (a region of no rows has nothing to stop); one set while it renders gives
+    /// nothing or all of it.
     #[test]
     fn a_region_rendered_in_bands_on_a_pool_is_the_region_rendered_alone() {
         use std::sync::atomic::AtomicBool;
@@ -365,5 +363,34 @@ mod tests {
                 }
             }
         }
+        // A stop that comes while the bands render gives nothing or the whole region, never a
+        // region with bands missing (a worker would upload it as complete).
+        let scene = Scene::load(&dir.join("cbox.xml"), &[]).expect("cbox");
+        let r = Region { x0: 100, y0: 100, x1: 132, y1: 132, s0: 0, s1: 2 };
+        let alone = render_region(&scene, &r, 5);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().expect("pool");
+        let (mut stopped, mut whole) = (0, 0);
+        for k in 0..24u64 {
+            let stop = AtomicBool::new(false);
+            let got = std::thread::scope(|s| {
+                s.spawn(|| {
+                    std::thread::sleep(std::time::Duration::from_micros(k * k * 40));
+                    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+                });
+                render_region_on(&pool, &scene, &r, 5, &stop)
+            });
+            match got {
+                None => stopped += 1,
+                Some(got) => {
+                    assert!(
+                        got.0 == alone.0 && got.1 == alone.1,
+                        "stop after {} us: bands missing",
+                        k * k * 40
+                    );
+                    whole += 1;
+                }
+            }
+        }
+        assert!(stopped > 0, "no render was stopped ({whole} whole)");
     }
 }
