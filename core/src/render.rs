@@ -331,35 +331,52 @@ mod tests {
 
     /// A region rendered in bands by a pool's tasks is the region rendered alone, bit for bit
     /// and count for count: for pools of 1 to 5 threads (more threads than bands, fewer, as
-    /// many) and regions of 0, 1, 2, 7 and 20 rows; a box filter and a wider one (whose bands
-    /// splat into each other's rows). A stop set before the render gives
+    /// many), regions of 0, 1, 2, 7 and 20 rows and regions at the image's edges; a box filter,
+    /// a wider one (whose bands splat into each other's rows) and a crop window. A stop set before the render gives
     /// nothing (a region of no rows has nothing to stop); one set while it renders gives
     /// nothing or all of it.
     #[test]
     fn a_region_rendered_in_bands_on_a_pool_is_the_region_rendered_alone() {
         use std::sync::atomic::AtomicBool;
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes");
-        for name in ["cbox.xml", "small.xml"] {
-            let scene = Scene::load(&dir.join(name), &[]).unwrap_or_else(|e| panic!("{name}: {e}"));
+        for (name, crop) in [("cbox.xml", false), ("small.xml", false), ("small.xml", true)] {
+            let mut scene = Scene::load(&dir.join(name), &[]).unwrap_or_else(|e| panic!("{name}: {e}"));
+            if crop {
+                // A crop window: pixels are the window's, the camera's are offset.
+                let f = &mut scene.film;
+                (f.crop_x, f.crop_y, f.crop_width, f.crop_height) =
+                    (5, 3, f.crop_width - 9, f.crop_height - 7);
+            }
             let (w, h) = (scene.film.crop_width, scene.film.crop_height);
+            let mut regions: Vec<Region> = [0, 1, 2, 7, 20]
+                .map(|rows| Region {
+                    x0: w / 2 - 9,
+                    y0: h / 2 - 10,
+                    x1: w / 2 + 9,
+                    y1: h / 2 - 10 + rows,
+                    s0: 2,
+                    s1: 6,
+                })
+                .into();
+            // At the image's edges, where the filter's margin is clipped.
+            regions.push(Region { x0: 0, y0: 0, x1: w, y1: 5, s0: 0, s1: 3 });
+            regions.push(Region { x0: w - 13, y0: h - 7, x1: w, y1: h, s0: 1, s1: 4 });
             for threads in 1..=5 {
                 let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
-                for rows in [0, 1, 2, 7, 20] {
-                    let r = Region {
-                        x0: w / 2 - 9,
-                        y0: h / 2 - 10,
-                        x1: w / 2 + 9,
-                        y1: h / 2 - 10 + rows,
-                        s0: 2,
-                        s1: 6,
-                    };
+                for r in &regions {
                     let go = AtomicBool::new(false);
-                    let banded = render_region_on(&pool, &scene, &r, 5, &go).expect("not stopped");
-                    let alone = render_region(&scene, &r, 5);
-                    assert!(banded.0 == alone.0, "{name}, {threads} threads, {rows} rows: images differ");
-                    assert_eq!(banded.1, alone.1, "{name}, {threads} threads, {rows} rows: counts differ");
+                    let banded = render_region_on(&pool, &scene, r, 5, &go).expect("not stopped");
+                    let alone = render_region(&scene, r, 5);
+                    assert!(
+                        banded.0 == alone.0,
+                        "{name} (crop {crop}), {threads} threads, {r:?}: images differ"
+                    );
+                    assert_eq!(
+                        banded.1, alone.1,
+                        "{name} (crop {crop}), {threads} threads, {r:?}: counts differ"
+                    );
                     let stop = AtomicBool::new(true);
-                    assert!(render_region_on(&pool, &scene, &r, 5, &stop).is_none() || rows == 0);
+                    assert!(render_region_on(&pool, &scene, r, 5, &stop).is_none() || r.y1 == r.y0);
                 }
             }
         }
