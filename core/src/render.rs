@@ -316,25 +316,24 @@ mod tests {
                     let r = Region { x0: w / 2 - 12, y0: h / 2 - 10, x1: w / 2 + 12, y1: h / 2 + 10, s0, s1 };
                     let packed = render_region_in(&scene, &r, 11, true);
                     let alone = render_region_in(&scene, &r, 11, false);
-                    assert!(
-                        packed.0 == alone.0,
-                        "{name} {extra} {kernel:?} samples {s0}..{s1}: images differ"
-                    );
-                    assert_eq!(
-                        packed.1, alone.1,
-                        "{name} {extra} {kernel:?} samples {s0}..{s1}: counts differ"
-                    );
+                    assert_same(&packed, &alone, &format!("{name} {extra} {kernel:?} samples {s0}..{s1}"));
                 }
             }
         }
     }
 
+    /// The same image, bit for bit, and the same counts.
+    fn assert_same(a: &(Accum, Stats), b: &(Accum, Stats), what: &str) {
+        assert!(a.0 == b.0, "{what}: images differ");
+        assert_eq!(a.1, b.1, "{what}: counts differ");
+    }
+
     /// A region rendered in bands by a pool's tasks is the region rendered alone, bit for bit
     /// and count for count: for pools of 1 to 5 threads (more threads than bands, fewer, as
     /// many), regions of 0, 1, 2, 7 and 20 rows and regions at the image's edges; a box filter,
-    /// a wider one (whose bands splat into each other's rows) and a crop window. A stop set before the render gives
-    /// nothing (a region of no rows has nothing to stop); one set while it renders gives
-    /// nothing or all of it.
+    /// a wider one (whose bands splat into each other's rows) and a crop window. A stop set
+    /// before the render gives nothing (a region of no rows has nothing to stop); one set while
+    /// it renders gives nothing or all of it, never a region with bands missing.
     #[test]
     fn a_region_rendered_in_bands_on_a_pool_is_the_region_rendered_alone() {
         use std::sync::atomic::AtomicBool;
@@ -367,14 +366,7 @@ mod tests {
                     let go = AtomicBool::new(false);
                     let banded = render_region_on(&pool, &scene, r, 5, &go).expect("not stopped");
                     let alone = render_region(&scene, r, 5);
-                    assert!(
-                        banded.0 == alone.0,
-                        "{name} (crop {crop}), {threads} threads, {r:?}: images differ"
-                    );
-                    assert_eq!(
-                        banded.1, alone.1,
-                        "{name} (crop {crop}), {threads} threads, {r:?}: counts differ"
-                    );
+                    assert_same(&banded, &alone, &format!("{name} (crop {crop}), {threads} threads, {r:?}"));
                     let stop = AtomicBool::new(true);
                     assert!(render_region_on(&pool, &scene, r, 5, &stop).is_none() || r.y1 == r.y0);
                 }
@@ -399,11 +391,7 @@ mod tests {
             match got {
                 None => stopped += 1,
                 Some(got) => {
-                    assert!(
-                        got.0 == alone.0 && got.1 == alone.1,
-                        "stop after {} us: bands missing",
-                        k * k * 40
-                    );
+                    assert_same(&got, &alone, &format!("stopped after {} us", k * k * 40));
                     whole += 1;
                 }
             }
