@@ -183,7 +183,10 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
                     let l = if looked_up >> j & 1 != 0 {
                         escaped[j]
                     } else {
-                        path::li(scene, rays[j], diffs[j].as_ref(), first, &mut streams[j], &mut st)
+                        // Without a lens the camera's set has two numbers to spare: the first
+                        // vertex's light sample (`path::li`).
+                        let light0 = if cam.lens.is_none() { Some(lens_u[j].to_array()) } else { None };
+                        path::li(scene, rays[j], diffs[j].as_ref(), first, light0, &mut streams[j], &mut st)
                     };
                     st.samples += 1;
                     // (Read a coordinate at a time: either branch leaves `l` in memory in pieces.)

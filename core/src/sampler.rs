@@ -6,9 +6,10 @@
 //! seed, hashed from the pixel seed and the set's index.
 //!
 //! Stratification pays off in the first dimensions (film, lens, the first bounces' light and
-//! BSDF samples); an Owen-scrambled set costs ~70 ns. Sets from [`SOBOL_SETS`] on (the third
-//! bounce and deeper) are therefore independent uniform numbers hashed from the same
-//! coordinates: ~10 ns, equally deterministic.
+//! BSDF samples; which vertex takes which numbers: [`crate::integrator::path::li`]); an
+//! Owen-scrambled set costs ~70 ns. Sets from [`SOBOL_SETS`] on (the choices at the third
+//! vertex and everything after them) are therefore independent uniform numbers hashed from
+//! the same coordinates: ~10 ns, equally deterministic.
 
 use std::cell::Cell;
 
@@ -17,7 +18,7 @@ use sobol_burley::parts::{self, Int4};
 use crate::math::{hash_step, hash_u32, hash_words, HASH_START};
 
 /// 4-D sets drawn from Owen-scrambled Sobol; later sets are hashed uniform numbers.
-pub const SOBOL_SETS: u32 = 5;
+pub const SOBOL_SETS: u32 = 6;
 
 /// Sobol points per (scramble) sequence in `sobol_burley`.
 const SEQUENCE_LEN: u32 = 1 << 16;
@@ -129,6 +130,13 @@ impl SampleStream<'_> {
     #[inline]
     pub fn peek_4d(&self) -> [f32; 4] {
         self.set_4d(self.set)
+    }
+
+    /// The 4 dimensions `ahead` sets past the next, without taking any: what
+    /// [`SampleStream::peek_4d`] will give after `ahead` sets are taken.
+    #[inline]
+    pub fn peek_4d_ahead(&self, ahead: u32) -> [f32; 4] {
+        self.set_4d(self.set + ahead)
     }
 
     /// Takes the next 4 dimensions (read already by [`SampleStream::peek_4d`]).
@@ -380,7 +388,7 @@ mod tests {
     #[test]
     fn deferred_sets_match_drawn_ones() {
         for index in [0u64, 5, 70_000] {
-            let all = sets(3, 1, 2, index, 8);
+            let all = sets(3, 1, 2, index, SOBOL_SETS as usize + 2);
             let mut p = PixelSeeds::new(3, 1, 2);
             let mut s = p.stream(index);
             assert_eq!(s.next_4d(), all[0]);
@@ -389,9 +397,12 @@ mod tests {
             assert_eq!(s.next_4d(), all[3]);
             assert_eq!(d1.get(&s), all[1]);
             assert_eq!(d1.get(&s), all[1]);
+            while s.set < SOBOL_SETS {
+                s.skip_4d();
+            }
             let mut late = s.defer_4d(); // a hashed set (past SOBOL_SETS)
-            assert_eq!(s.next_4d(), all[5]);
-            assert_eq!(late.get(&s), all[4]);
+            assert_eq!(s.next_4d(), all[SOBOL_SETS as usize + 1]);
+            assert_eq!(late.get(&s), all[SOBOL_SETS as usize]);
         }
     }
 
@@ -401,11 +412,14 @@ mod tests {
     #[test]
     fn peeked_sets_are_the_drawn_ones() {
         for index in [0u64, 5, 70_000] {
-            let all = sets(3, 1, 2, index, 8);
+            let all = sets(3, 1, 2, index, SOBOL_SETS as usize + 4);
             let mut p = PixelSeeds::new(3, 1, 2);
             let mut s = p.stream(index);
             for (k, want) in all.iter().enumerate() {
                 assert_eq!(s.peek_4d(), *want, "set {k}");
+                if k + 2 < all.len() {
+                    assert_eq!(s.peek_4d_ahead(2), all[k + 2], "set {k} + 2, peeked ahead");
+                }
                 assert_eq!(s.peek_4d(), *want, "set {k}, peeked again");
                 if k % 2 == 0 {
                     s.skip_4d();
@@ -413,13 +427,15 @@ mod tests {
                     assert_eq!(s.next_4d(), *want, "set {k}");
                 }
             }
-            // The integrator's order at a vertex: peek, skip, then defer the next set.
+            // The integrator's order at a vertex: peek this vertex's set and the next vertex's,
+            // skip, then defer the choices' set; the next vertex's is then the next set.
             let mut p = PixelSeeds::new(3, 1, 2);
             let mut s = p.stream(index);
-            let first = s.peek_4d();
+            let (first, ahead) = (s.peek_4d(), s.peek_4d_ahead(2));
             s.skip_4d();
             let mut deferred = s.defer_4d();
-            assert_eq!((first, s.next_4d(), deferred.get(&s)), (all[0], all[2], all[1]));
+            assert_eq!((first, ahead, s.peek_4d()), (all[0], all[2], all[2]));
+            assert_eq!((s.next_4d(), deferred.get(&s)), (all[2], all[1]));
         }
     }
 
