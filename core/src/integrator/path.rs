@@ -119,13 +119,13 @@ pub fn li(
             }
             break;
         };
-        // The vertex's numbers, computed here and taken below (after the pass
-        // through hidden emitters, which takes none): computed ahead of the hit's interaction,
-        // their table reads and stores are done by the time shading reads them (plain build:
-        // textured +15%, thinlens +3%, the others within 2.5%; docs/BENCHMARKS.md, "Issue 15,
-        // twenty-first step").
-        // This vertex's set, and the next vertex's (past this vertex's choices), whose last
-        // two numbers are this vertex's BSDF sample.
+        // The next vertex's set (past this vertex's choices), whose last two numbers are this
+        // vertex's BSDF sample, computed here and taken below (after the pass through hidden
+        // emitters, which takes none); this vertex's own set came from the vertex before (or
+        // the camera), and is computed here only at a lens camera's first vertex. Computed
+        // ahead of the hit's interaction, their table reads and stores are done by the time
+        // shading reads them (plain build: textured +15%, thinlens +3%, the others within
+        // 2.5%; docs/BENCHMARKS.md, "Issue 15, twenty-first step").
         let set = here.unwrap_or_else(|| s.peek_4d());
         let next = if depth.saturating_add(1) < settings.max_depth { s.peek_4d_ahead(2) } else { [0.0; 4] };
         // (Made here, not inside the Option: see `Accel::closest`.)
