@@ -88,6 +88,9 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
     let cam = &scene.camera;
     let filter = film.filter;
     let own_pixel = matches!(filter, Filter::Box { radius } if radius == 0.5);
+    // Without a lens the camera's set has two numbers to spare: the first vertex's light
+    // sample (`path::li`).
+    let spare_lens = cam.lens.is_none();
     let (w, h) = (film.crop_width, film.crop_height);
     let mut cands = Candidates::default();
     let bundles = cam.pixel_bundles();
@@ -183,9 +186,7 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
                     let l = if looked_up >> j & 1 != 0 {
                         escaped[j]
                     } else {
-                        // Without a lens the camera's set has two numbers to spare: the first
-                        // vertex's light sample (`path::li`).
-                        let light0 = if cam.lens.is_none() { Some(lens_u[j].to_array()) } else { None };
+                        let light0 = spare_lens.then(|| lens_u[j].to_array());
                         path::li(scene, rays[j], diffs[j].as_ref(), first, light0, &mut streams[j], &mut st)
                     };
                     st.samples += 1;
