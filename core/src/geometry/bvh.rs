@@ -1221,8 +1221,10 @@ impl Accel {
             BvhBuildParams::medium_build()
         };
         // Leaves of up to four primitives, collapsed where the SAH says a leaf is cheaper, with
-        // a box test costing twice a primitive's: on hair.xml, 1 renders 5% faster but holds
-        // twice the nodes (29 bytes a fibre segment against 16); 3 is 15% slower on cbox.
+        // a box test costing twice a primitive's. Leaves of 1 hold twice the nodes (29 bytes a
+        // fibre segment against 16) and once rendered hair.xml 5% faster; measured again at
+        // issue 15's twenty-fifth step, neither 1 nor 2 for fibre trees was faster on hair.xml or
+        // whimsical.xml (docs/BENCHMARKS.md). 3 is 15% slower on cbox.
         params.max_prims_per_leaf = LEAF_MAX;
         params.collapse_traversal_cost = 2.0;
         let depth = if count <= batch {
