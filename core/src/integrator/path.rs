@@ -43,10 +43,10 @@ pub enum First {
 /// [`crate::sampler::SOBOL_SETS`], is one stratified point): vertex d's light sample is set
 /// `1 + 2d`'s first two numbers, its BSDF sample the last two of the set after its choices'
 /// set, the next vertex's (`1 + 2(d + 1)`). So each BSDF sample is stratified together with
-/// the light sample at the vertex it leads to, the two numbers the path's next direct light
-/// depends on jointly (light through glass: envmap's relMSE at 64 spp over 64 seeds, median
-/// 0.00635 -> 0.00590, 10%-trimmed mean 0.00663 -> 0.00578), where
-/// pairing them with the same vertex's light sample stratified two independent choices.
+/// the light sample at the vertex it leads to: the two numbers the path's next direct light
+/// depends on jointly. Paired with the same vertex's light sample, as before, it stratified
+/// two independent choices instead (light through glass: envmap's relMSE at 64 spp over 64
+/// seeds, median 0.00635 -> 0.00590, 10%-trimmed mean 0.00676 -> 0.00584).
 /// Where `light0` is given, the first vertex's light sample comes with the pixel position in
 /// the camera's set, and set 1 is never computed. docs/BENCHMARKS.md, "Issue 15,
 /// twenty-fourth step".
