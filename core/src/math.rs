@@ -219,6 +219,19 @@ pub fn apart(v: Vec3) -> Vec3 {
     v
 }
 
+/// `*v` loaded a coordinate at a time, for a vector that may have just been stored in pieces
+/// (a ray made a moment before): [`apart`] keeps the coordinates apart once loaded, but the
+/// compiler may still load two of them with one 8-byte read, which waits for both stores to
+/// complete. Three separate 4-byte reads (volatile, so that they are not merged) each take
+/// their value from the store in flight.
+#[inline(always)]
+pub fn load_apart(v: &Vec3) -> Vec3 {
+    // SAFETY: reads of three f32 fields of a live, aligned reference.
+    unsafe {
+        Vec3::new(std::ptr::read_volatile(&v.x), std::ptr::read_volatile(&v.y), std::ptr::read_volatile(&v.z))
+    }
+}
+
 /// [`apart`] for a `Vec2`: its two coordinates read one at a time.
 #[inline(always)]
 pub fn apart2(v: Vec2) -> Vec2 {
@@ -331,6 +344,12 @@ impl Frame {
         }
         let s = s / len2.sqrt();
         Frame { s, t: n.cross(s), n }
+    }
+
+    /// The frame with each vector read a coordinate at a time ([`apart`]).
+    #[inline(always)]
+    pub fn apart(&self) -> Frame {
+        Frame { s: apart(self.s), t: apart(self.t), n: apart(self.n) }
     }
 
     #[inline]

@@ -209,7 +209,7 @@ impl Bsdf {
     pub fn at(&self, wo: Vec3) -> BsdfAt<'_> {
         match self {
             Bsdf::Hair(h) => BsdfAt::Hair(h.at(wo, hair::Hair::h_from(wo))),
-            b => BsdfAt::Other(b, wo),
+            b => BsdfAt::Other(b),
         }
     }
 
@@ -241,25 +241,27 @@ impl Bsdf {
 #[derive(Clone, Copy)]
 pub enum BsdfAt<'a> {
     Hair(hair::HairAt<'a>),
-    Other(&'a Bsdf, Vec3),
+    Other(&'a Bsdf),
 }
 
 impl BsdfAt<'_> {
-    /// [`Bsdf::eval_pdf`] for this vertex's wo.
+    /// [`Bsdf::eval_pdf`] for this vertex's wo (the one it was made for: `wo` is passed
+    /// again, rather than kept in the enum, so that no copy of it is read back wide while its
+    /// coordinates are still being stored: `math::apart`).
     #[inline]
-    pub fn eval_pdf(&self, uv: TexCoord, wi: Vec3) -> (Rgb, f32) {
+    pub fn eval_pdf(&self, uv: TexCoord, wo: Vec3, wi: Vec3) -> (Rgb, f32) {
         match self {
             BsdfAt::Hair(h) => h.eval_pdf(wi),
-            BsdfAt::Other(b, wo) => b.eval_pdf(uv, *wo, wi),
+            BsdfAt::Other(b) => b.eval_pdf(uv, wo, wi),
         }
     }
 
-    /// [`Bsdf::sample`] for this vertex's wo.
+    /// [`Bsdf::sample`] for this vertex's wo (passed again, as to [`BsdfAt::eval_pdf`]).
     #[inline]
-    pub fn sample(&self, uv: TexCoord, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+    pub fn sample(&self, uv: TexCoord, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
         match self {
             BsdfAt::Hair(h) => h.sample(u1, u2),
-            BsdfAt::Other(b, wo) => b.sample(uv, *wo, u1, u2),
+            BsdfAt::Other(b) => b.sample(uv, wo, u1, u2),
         }
     }
 }

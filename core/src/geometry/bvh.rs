@@ -881,11 +881,19 @@ impl<'a> Query<'a> {
         Query::from(shapes, ray, SpawnedFrom::NOTHING)
     }
 
+    /// This query, fresh, along `ray` instead ([`Query::new`]'s for it).
+    #[inline(always)]
+    fn aim(&mut self, ray: &'a Ray) {
+        self.ray = ray;
+        self.pre = RayPre::new(crate::math::load_apart(&ray.d));
+    }
+
     fn from(shapes: &'a [Shape], ray: &'a Ray, from: SpawnedFrom) -> Query<'a> {
         Query {
             shapes,
             ray,
-            pre: RayPre::new(ray.d),
+            // (Read a coordinate at a time: `math::load_apart`.)
+            pre: RayPre::new(crate::math::load_apart(&ray.d)),
             best: None,
             inner: Cell::new((0, Vec2::ZERO, 0.0)),
             leaving: from.piece,
@@ -1381,7 +1389,8 @@ impl Accel {
                 (_, true) => self.traverse::<ScalarTest, true>(q),
             }
         };
-        q.best.map(|(k, aux)| (t, k, aux))
+        // (aux read a coordinate at a time, as the traversal stored it: `math::apart2`.)
+        q.best.map(|(k, aux)| (t, k, crate::math::apart2(aux)))
     }
 
     /// The interaction of the hit at `t` on the primitive leaves call `k`.
@@ -1867,8 +1876,13 @@ impl Accel {
             let n = rays.len();
             // Lanes past `n` repeat the last ray; they are never tested.
             let last = Query::new(shapes, &rays[n - 1]);
-            let mut qs: [Query; PACKET] =
-                std::array::from_fn(|j| if j + 1 < n { Query::new(shapes, &rays[j]) } else { last.clone() });
+            // Copies of `last`, the others then aimed along their rays: a query made whole for
+            // each lane was built aside and copied in (a `memcpy` call per packet in the
+            // profile-guided build).
+            let mut qs: [Query; PACKET] = std::array::from_fn(|_| last.clone());
+            for (q, ray) in qs.iter_mut().zip(&rays[..n - 1]) {
+                q.aim(ray);
+            }
             let p = &qs[0].pre;
             if qs[1..n].iter().all(|q| (q.pre.kx, q.pre.ky, q.pre.kz) == (p.kx, p.ky, p.kz)) {
                 // SAFETY: the AVX2 kernel is only chosen where the CPU runs it (`detect`,

@@ -114,7 +114,8 @@ pub fn li(
                         let (le, pdf) = light.le_pdf_infinite(ray.d);
                         (le, mis_power(prev_pdf, sel_pdf * pdf))
                     };
-                    l += beta * le * w;
+                    // (Read a coordinate at a time: `math::apart`.)
+                    l += beta * apart(le) * w;
                 }
             }
             break;
@@ -163,7 +164,9 @@ pub fn li(
         if traits.black {
             break;
         }
-        let wo = it.frame.to_local(wo_world);
+        // (The frame and wo read a coordinate at a time: `math::apart`.)
+        let frame = it.frame.apart();
+        let wo = apart(frame.to_local(wo_world));
         let tc = match diff {
             Some(d) if depth == 0 => {
                 st.footprints += 1;
@@ -201,6 +204,9 @@ pub fn li(
         // computes it while the light sample's chain of divisions and roots (an environment
         // map's warp) is still in flight, instead of after the shadow ray. The same numbers in
         // either order.
+        // The light chosen, kept apart from its sample: a tuple of the two would be a copy of
+        // the sample, read back wide while its fields are still being stored (`math::apart`).
+        let mut nee_light = None;
         let nee = if plan.light_sampling && n_lights > 0 && traits.smooth {
             let (k, lu) = if !chooses_light {
                 (0, lu)
@@ -214,7 +220,8 @@ pub fn li(
             let light = &scene.lights[scene.sampled_lights[k] as usize];
             st.light_samples[light.kind() as usize] += 1;
             let spare = || choices.get(s)[3];
-            light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare).map(|ls| (light, ls))
+            nee_light = Some(light);
+            light.sample(&scene.shapes, &it, Vec2::new(lu, lv), spare)
         } else {
             None
         };
@@ -222,14 +229,14 @@ pub fn li(
         // BSDF sampling (taken up after next-event estimation).
         st.bsdf_samples += 1;
         let bsel = if traits.chooses_lobe { choices.get(s)[1] } else { 0.0 };
-        let bs = bsdf.sample(tc, bsel, Vec2::new(bu, bv));
+        let bs = bsdf.sample(tc, wo, bsel, Vec2::new(bu, bv));
 
-        if let Some((light, ls)) = nee {
+        if let (Some(light), Some(ls)) = (nee_light, &nee) {
             if ls.pdf > 0.0 && !ls.is_black() {
                 // (Read a coordinate at a time: `math::apart`.)
                 let ls_wi = apart(ls.wi);
-                let wi = it.frame.to_local(ls_wi);
-                let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wi);
+                let wi = frame.to_local(ls_wi);
+                let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wo, wi);
                 if f != Rgb::ZERO {
                     let shadow = match ls.target {
                         Some((t, dist)) => it.spawn_ray_to(ls_wi, apart(t), dist),
@@ -250,7 +257,7 @@ pub fn li(
             break;
         };
         // (The sample's vectors read a coordinate at a time: `math::apart`.)
-        let wi_world = it.frame.to_world(apart(bs.wi));
+        let wi_world = frame.to_world(apart(bs.wi));
         beta *= apart(bs.weight);
         eta *= bs.eta;
         prev_p = it.p;
