@@ -176,27 +176,25 @@ pub struct RayPre {
 
 impl RayPre {
     pub fn new(d: Vec3) -> RayPre {
+        use glam::{BVec3A, Vec3A, Vec3Swizzles};
         // The dominant axis kz (ties as before: x over y over z, z where x and y tie with it),
-        // and d's coordinates in the order kz + 1, kz + 2, kz, chosen without branches: a
-        // bounce's direction is random, so branches on it mispredict about half the time
-        // (they were a fifth of `Accel::closest`'s own time on textured.xml), and an array
-        // indexed by kx was a memory round trip in every query.
+        // and d's coordinates in the order kz + 1, kz + 2, kz, chosen in a register's lanes
+        // without branches: a bounce's direction is random, so branches on it mispredict about
+        // half the time (they were a fifth of `Accel::closest`'s own time on textured.xml), and
+        // an array indexed by kx was a memory round trip in every query.
         let a = d.abs();
         let (x_top, y_top) = (a.x > a.y && a.x > a.z, !(a.x > a.y) && a.y > a.z);
         let kz = 2 - 2 * x_top as usize - y_top as usize;
-        let (mx, my) = (0u32.wrapping_sub(x_top as u32), 0u32.wrapping_sub(y_top as u32));
-        let mz = !(mx | my);
-        let pick = |on_x: f32, on_y: f32, on_z: f32| {
-            f32::from_bits((on_x.to_bits() & mx) | (on_y.to_bits() & my) | (on_z.to_bits() & mz))
-        };
-        let (dx, dy, dz) = (pick(d.y, d.z, d.x), pick(d.z, d.x, d.y), pick(d.x, d.y, d.z));
-        // Swapped where dz < 0, to keep the winding.
-        let flip = dz < 0.0;
-        let mf = 0u32.wrapping_sub(flip as u32);
-        let swap = |a: f32, b: f32| f32::from_bits((b.to_bits() & mf) | (a.to_bits() & !mf));
+        let d = Vec3A::from(d);
+        let r = Vec3A::select(BVec3A::splat(x_top), d.yzx(), Vec3A::select(BVec3A::splat(y_top), d.zxy(), d));
+        // x and y swapped where dz < 0, to keep the winding.
+        let flip = r.z < 0.0;
+        let r = Vec3A::select(BVec3A::splat(flip), r.yxz(), r);
         let (k1, k2) = ((kz + 1) % 3, (kz + 2) % 3);
         let (kx, ky) = if flip { (k2, k1) } else { (k1, k2) };
-        RayPre { kx, ky, kz, sx: -swap(dx, dy) / dz, sy: -swap(dy, dx) / dz, sz: 1.0 / dz }
+        // -dx / dz, -dy / dz and 1 / dz in one division.
+        let s = Vec3A::new(-r.x, -r.y, 1.0) / Vec3A::splat(r.z);
+        RayPre { kx, ky, kz, sx: s.x, sy: s.y, sz: s.z }
     }
 }
 
