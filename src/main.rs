@@ -201,7 +201,7 @@ fn render(a: RenderArgs) -> Result<()> {
         scene.lights.len(),
         furnace_core::cpu::build_target(),
         furnace_core::sampler::instruction_set(),
-        scene.accel.kernel().name()
+        scene.accel.describe()
     );
     let plan = scene.describe();
     if a.plan {

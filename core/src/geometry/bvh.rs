@@ -82,6 +82,33 @@ struct Node {
 const EMPTY_NODE: Node =
     Node { origin: [0.0; 3], used: 0, scale: [1.0; 4], planes: [[0; WIDTH]; 6], child: [0; WIDTH] };
 
+/// A [`Node`] with its planes decoded to f32, bit for bit as the box tests decode them, for
+/// trees whose copy of them costs at most [`FLAT_BYTES`] (the AVX2 kernel then reads these:
+/// a box test without the eighteen instructions of decoding, the same boxes, so the same
+/// traversal and the same images). 256 bytes, 32 a child.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(32))]
+struct FlatNode {
+    planes: [[f32; WIDTH]; 6],
+    child: [u32; WIDTH],
+    used: u32,
+}
+
+/// Most bytes of [`FlatNode`]s that a scene's trees hold, all together (a fur ball of 96,000
+/// segments takes 3.4 MB); larger scenes keep only the 8-bit planes, whose memory per
+/// primitive is what the seed's scale is held to (`tests/scale.rs`).
+pub const FLAT_BYTES: usize = 4 << 20;
+
+impl FlatNode {
+    fn of(node: &Node) -> FlatNode {
+        let planes = std::array::from_fn(|p| {
+            let a = p / 2;
+            std::array::from_fn(|i| node.origin[a] + node.planes[p][i] as f32 * node.scale[a])
+        });
+        FlatNode { planes, child: node.child, used: node.used }
+    }
+}
+
 impl Node {
     /// The node over `boxes` (each child's lower and upper corner).
     fn quantise(boxes: &[(Vec3A, Vec3A)]) -> Node {
@@ -233,6 +260,8 @@ impl Kernel {
 
 pub struct Accel {
     nodes: Vec<Node>,
+    /// `nodes` decoded ([`FlatNode`]), where the scene's trees are small enough; else empty.
+    flat: Vec<FlatNode>,
     /// `prims[k]` is the primitive that leaves call `k`.
     prims: Vec<PrimRef>,
     /// Triangles in leaf order, so that traversal reads vertices without indirection through
@@ -365,7 +394,7 @@ mod x86 {
 
     use std::mem::MaybeUninit;
 
-    use super::{bundle_culled, BoxRay, Bundle, Node, QuadHits, TriRay, FAR_SCALE, WIDTH};
+    use super::{bundle_culled, BoxRay, Bundle, FlatNode, Node, QuadHits, TriRay, FAR_SCALE, WIDTH};
     use crate::math::gamma;
 
     /// [`super::super::intersect_triangle`] on four lanes: the same IEEE operations in the
@@ -727,6 +756,23 @@ mod x86 {
         (_mm256_movemask_ps(hit) as u32 & node.used, tn)
     }
 
+    /// [`test_avx2`] on a node's decoded planes: the same IEEE operations on the same values.
+    #[inline(always)]
+    pub unsafe fn test_avx2_flat(node: &FlatNode, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        let mut near = _mm256_set1_ps(tmin);
+        let mut far = _mm256_set1_ps(tmax);
+        for a in 0..3 {
+            let plane = |p: usize| _mm256_load_ps(node.planes[p].as_ptr());
+            let (o, inv) = (_mm256_set1_ps(r.o[a]), _mm256_set1_ps(r.inv[a]));
+            near = _mm256_max_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.near[a]), o), inv), near);
+            far = _mm256_min_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.far[a]), o), inv), far);
+        }
+        let mut tn = [0.0f32; WIDTH];
+        _mm256_storeu_ps(tn.as_mut_ptr(), near);
+        let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, _mm256_mul_ps(far, _mm256_set1_ps(FAR_SCALE)));
+        (_mm256_movemask_ps(hit) as u32 & node.used, tn)
+    }
+
     /// [`super::bundle_test_scalar`] in one 256-bit register: the same IEEE operations in
     /// the same order.
     #[inline(always)]
@@ -783,6 +829,23 @@ trait BoxTest {
     /// # Safety
     /// The CPU must have the kernel's instructions.
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]);
+
+    /// [`BoxTest::test`] of node `cur` of `accel`, and the node's children.
+    ///
+    /// # Safety
+    /// The CPU must have the kernel's instructions; `cur` must be a node of `accel`.
+    #[inline(always)]
+    unsafe fn test_at<'a>(
+        accel: &'a Accel,
+        cur: usize,
+        r: &BoxRay,
+        tmin: f32,
+        tmax: f32,
+    ) -> (u32, [f32; WIDTH], &'a [u32; WIDTH]) {
+        let node = accel.nodes.get_unchecked(cur);
+        let (mask, tn) = Self::test(node, r, tmin, tmax);
+        (mask, tn, &node.child)
+    }
 }
 struct ScalarTest;
 impl BoxTest for ScalarTest {
@@ -810,6 +873,29 @@ impl BoxTest for AvxTest {
     #[inline(always)]
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         x86::test_avx2(node, r, tmin, tmax)
+    }
+}
+/// [`AvxTest`] on the tree's decoded planes ([`FlatNode`]): the same boxes.
+#[cfg(target_arch = "x86_64")]
+struct AvxFlatTest;
+#[cfg(target_arch = "x86_64")]
+impl BoxTest for AvxFlatTest {
+    const QUADS: bool = true;
+    #[inline(always)]
+    unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        x86::test_avx2(node, r, tmin, tmax)
+    }
+    #[inline(always)]
+    unsafe fn test_at<'a>(
+        accel: &'a Accel,
+        cur: usize,
+        r: &BoxRay,
+        tmin: f32,
+        tmax: f32,
+    ) -> (u32, [f32; WIDTH], &'a [u32; WIDTH]) {
+        let node = accel.flat.get_unchecked(cur);
+        let (mask, tn) = x86::test_avx2_flat(node, r, tmin, tmax);
+        (mask, tn, &node.child)
     }
 }
 
@@ -1172,7 +1258,35 @@ impl Accel {
         let top: Vec<u32> = (0..shapes.len() as u32).filter(|&s| !member[s as usize]).collect();
         let mut accel = Accel::build_over(shapes, &top, batch);
         accel.groups = groups.iter().map(|g| Accel::build_over(shapes, g, batch)).collect();
+        let nodes = accel.nodes.len() + accel.groups.iter().map(|g| g.nodes.len()).sum::<usize>();
+        if nodes * std::mem::size_of::<FlatNode>() <= FLAT_BYTES {
+            let decode = |a: &mut Accel| a.flat = a.nodes.iter().map(FlatNode::of).collect();
+            decode(&mut accel);
+            accel.groups.iter_mut().for_each(decode);
+        }
         accel
+    }
+
+    /// Whether the AVX2 kernel reads decoded planes ([`FlatNode`]) in this tree.
+    pub fn flat_boxes(&self) -> bool {
+        !self.flat.is_empty()
+    }
+
+    /// How this tree is traced, for the log: the kernel, and whether it reads the decoded
+    /// planes (the same boxes either way, so the same images).
+    pub fn describe(&self) -> String {
+        let flat =
+            if self.kernel == Kernel::Avx2 && self.flat_boxes() { ", boxes decoded to f32" } else { "" };
+        format!("{}{flat}", self.kernel.name())
+    }
+
+    /// With or without the decoded planes, whatever the tree's size (tests of both paths).
+    #[cfg(test)]
+    fn set_flat(&mut self, on: bool) {
+        self.flat = if on { self.nodes.iter().map(FlatNode::of).collect() } else { Vec::new() };
+        for g in &mut self.groups {
+            g.set_flat(on);
+        }
     }
 
     /// The tree over the primitives of `shapes[members]`.
@@ -1207,6 +1321,7 @@ impl Accel {
         if count == 0 {
             return Accel {
                 nodes: Vec::new(),
+                flat: Vec::new(),
                 prims: Vec::new(),
                 tris: LeafTris::default(),
                 stack_size: 0,
@@ -1275,7 +1390,16 @@ impl Accel {
                 + tris.bytes(),
             "BVH built"
         );
-        Accel { nodes, prims, tris, stack_size: (WIDTH - 1) * depth + 1, kernel, curves, groups: Vec::new() }
+        Accel {
+            nodes,
+            flat: Vec::new(),
+            prims,
+            tris,
+            stack_size: (WIDTH - 1) * depth + 1,
+            kernel,
+            curves,
+            groups: Vec::new(),
+        }
     }
 
     pub fn prim_count(&self) -> usize {
@@ -1525,13 +1649,21 @@ impl Accel {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn closest_avx(&self, q: &mut Query) -> f32 {
-        self.traverse::<AvxTest, false>(q)
+        if self.flat.is_empty() {
+            self.traverse::<AvxTest, false>(q)
+        } else {
+            self.traverse::<AvxFlatTest, false>(q)
+        }
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn any_avx(&self, q: &mut Query) -> f32 {
-        self.traverse::<AvxTest, true>(q)
+        if self.flat.is_empty() {
+            self.traverse::<AvxTest, true>(q)
+        } else {
+            self.traverse::<AvxFlatTest, true>(q)
+        }
     }
 
     /// Walks the tree for `q`: the closest hit (`ANY` false) or any hit (`ANY` true) goes to
@@ -1562,22 +1694,21 @@ impl Accel {
                     return tmax;
                 }
             } else {
-                let node = self.nodes.get_unchecked(cur as usize);
-                let (mut mask, tn) = T::test(node, &r, tmin, tmax);
+                let (mut mask, tn, child) = T::test_at(self, cur as usize, &r, tmin, tmax);
                 if mask != 0 {
                     let lane = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
                     if mask == 0 {
-                        cur = node.child[lane];
+                        cur = child[lane];
                         continue;
                     }
                     // Two or more children: push all but the nearest, farthest deepest.
                     let base = sp;
-                    let mut nearest = (node.child[lane], tn[lane]);
+                    let mut nearest = (child[lane], tn[lane]);
                     while mask != 0 {
                         let lane = mask.trailing_zeros() as usize;
                         mask &= mask - 1;
-                        let mut e = (node.child[lane], tn[lane]);
+                        let mut e = (child[lane], tn[lane]);
                         if !ANY && e.1 < nearest.1 {
                             std::mem::swap(&mut e, &mut nearest);
                         }
@@ -2191,6 +2322,7 @@ mod tests {
         {
             let shapes = soup(n, seed);
             let mut accel = Accel::build_in_batches(&shapes, &[], batch);
+            assert!(accel.flat_boxes(), "a small tree's planes are decoded");
             let Geometry::Mesh(mesh) = &shapes[0].geometry else { unreachable!() };
             let mut s = seed * 77 + 1;
             for ray_index in 0..3000 {
@@ -2213,15 +2345,20 @@ mod tests {
                         }
                     }
                 }
-                for kernel in Kernel::available() {
+                for (kernel, flat) in Kernel::available().into_iter().flat_map(|k| [(k, true), (k, false)]) {
                     accel.set_kernel(kernel);
+                    accel.set_flat(flat);
                     let hit = accel.intersect(&shapes, &ray).map(|it| (it.t, it.prim as usize));
                     assert_eq!(
                         hit.map(|h| h.0),
                         brute.map(|b| b.0),
-                        "{kernel:?}, n {n}, batch {batch}, ray {ray_index}"
+                        "{kernel:?}, flat {flat}, n {n}, batch {batch}, ray {ray_index}"
                     );
-                    assert_eq!(accel.occluded(&shapes, &ray), brute.is_some(), "{kernel:?}, ray {ray_index}");
+                    assert_eq!(
+                        accel.occluded(&shapes, &ray),
+                        brute.is_some(),
+                        "{kernel:?}, flat {flat}, ray {ray_index}"
+                    );
                 }
             }
         }
@@ -2799,10 +2936,16 @@ mod tests {
                 let o = target + dir.normalize() * 20.0 * scale;
                 let ray = Ray::new(o, (target - o).normalize());
                 let want = flat_accel.intersect(&flat, &ray);
-                for kernel in Kernel::available() {
+                for (kernel, decoded) in Kernel::available().into_iter().flat_map(|k| [(k, true), (k, false)])
+                {
                     accel.set_kernel(kernel);
+                    accel.set_flat(decoded);
                     let got = accel.intersect(&shapes, &ray);
-                    assert_eq!(accel.occluded(&shapes, &ray), got.is_some(), "{kernel:?}, placement {k}");
+                    assert_eq!(
+                        accel.occluded(&shapes, &ray),
+                        got.is_some(),
+                        "{kernel:?}, decoded {decoded}, placement {k}"
+                    );
                     match (&got, &want) {
                         (Some(g), Some(w)) => {
                             hits += 1;

@@ -68,6 +68,8 @@ pub(crate) const CURVE_PARSE: u64 = 96;
 const BVH_BUILD_PER_PRIM: u64 = 384;
 const BVH_ORDER_PER_PRIM: u64 = 20;
 const BVH_KEPT_PER_PRIM: u64 = 64;
+/// The decoded copy of a small scene's tree, at most (`geometry::bvh::FLAT_BYTES`).
+const FLAT_KEPT: u64 = crate::geometry::bvh::FLAT_BYTES as u64;
 
 /// A scene's load within its [`LoadLimits`](super::LoadLimits): the memory counted so far and
 /// the deadline.
@@ -244,8 +246,9 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
             prims
                 .min(crate::geometry::bvh::BATCH as u64)
                 .saturating_mul(BVH_BUILD_PER_PRIM)
-                .saturating_add(prims.saturating_mul(BVH_KEPT_PER_PRIM + BVH_ORDER_PER_PRIM)),
-            prims.saturating_mul(BVH_KEPT_PER_PRIM),
+                .saturating_add(prims.saturating_mul(BVH_KEPT_PER_PRIM + BVH_ORDER_PER_PRIM))
+                .saturating_add(FLAT_KEPT),
+            prims.saturating_mul(BVH_KEPT_PER_PRIM).saturating_add(FLAT_KEPT),
         )
         .map_err(|e| SceneError::file(&doc.file, e))?;
     let accel =
