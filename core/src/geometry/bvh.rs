@@ -738,31 +738,34 @@ mod x86 {
     /// about 1e38).
     #[inline(always)]
     pub unsafe fn test_avx2(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
-        let mut near = _mm256_set1_ps(tmin);
-        let mut far = _mm256_set1_ps(tmax);
-        for a in 0..3 {
+        let plane = |p: usize| {
+            let a = p / 2;
+            let q = _mm_loadl_epi64(node.planes[p].as_ptr() as *const __m128i);
             let (origin, scale) = (_mm256_set1_ps(node.origin[a]), _mm256_set1_ps(node.scale[a]));
-            let plane = |p: usize| {
-                let q = _mm_loadl_epi64(node.planes[p].as_ptr() as *const __m128i);
-                _mm256_fmadd_ps(_mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(q)), scale, origin)
-            };
-            let (o, inv) = (_mm256_set1_ps(r.o[a]), _mm256_set1_ps(r.inv[a]));
-            near = _mm256_max_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.near[a]), o), inv), near);
-            far = _mm256_min_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.far[a]), o), inv), far);
-        }
-        let mut tn = [0.0f32; WIDTH];
-        _mm256_storeu_ps(tn.as_mut_ptr(), near);
-        let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, _mm256_mul_ps(far, _mm256_set1_ps(FAR_SCALE)));
-        (_mm256_movemask_ps(hit) as u32 & node.used, tn)
+            _mm256_fmadd_ps(_mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(q)), scale, origin)
+        };
+        slabs_avx2(plane, node.used, r, tmin, tmax)
     }
 
     /// [`test_avx2`] on a node's decoded planes: the same IEEE operations on the same values.
     #[inline(always)]
     pub unsafe fn test_avx2_flat(node: &FlatNode, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        slabs_avx2(|p| _mm256_load_ps(node.planes[p].as_ptr()), node.used, r, tmin, tmax)
+    }
+
+    /// The slab test of eight boxes whose plane `p` (as [`super::Node::planes`]) `plane`
+    /// gives, for the lanes in `used`.
+    #[inline(always)]
+    unsafe fn slabs_avx2(
+        plane: impl Fn(usize) -> __m256,
+        used: u32,
+        r: &BoxRay,
+        tmin: f32,
+        tmax: f32,
+    ) -> (u32, [f32; WIDTH]) {
         let mut near = _mm256_set1_ps(tmin);
         let mut far = _mm256_set1_ps(tmax);
         for a in 0..3 {
-            let plane = |p: usize| _mm256_load_ps(node.planes[p].as_ptr());
             let (o, inv) = (_mm256_set1_ps(r.o[a]), _mm256_set1_ps(r.inv[a]));
             near = _mm256_max_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.near[a]), o), inv), near);
             far = _mm256_min_ps(_mm256_mul_ps(_mm256_sub_ps(plane(r.far[a]), o), inv), far);
@@ -770,7 +773,7 @@ mod x86 {
         let mut tn = [0.0f32; WIDTH];
         _mm256_storeu_ps(tn.as_mut_ptr(), near);
         let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, _mm256_mul_ps(far, _mm256_set1_ps(FAR_SCALE)));
-        (_mm256_movemask_ps(hit) as u32 & node.used, tn)
+        (_mm256_movemask_ps(hit) as u32 & used, tn)
     }
 
     /// [`super::bundle_test_scalar`] in one 256-bit register: the same IEEE operations in
@@ -829,22 +832,16 @@ trait BoxTest {
     /// # Safety
     /// The CPU must have the kernel's instructions.
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]);
-
-    /// [`BoxTest::test`] of node `cur` of `accel`, and the node's children.
+    /// Whether the kernel reads the tree's decoded planes ([`FlatNode`]) with `test_flat`.
+    const FLAT: bool = false;
+    /// [`BoxTest::test`] on a node's decoded planes, for kernels with `FLAT`.
     ///
     /// # Safety
-    /// The CPU must have the kernel's instructions; `cur` must be a node of `accel`.
+    /// As `test`.
     #[inline(always)]
-    unsafe fn test_at<'a>(
-        accel: &'a Accel,
-        cur: usize,
-        r: &BoxRay,
-        tmin: f32,
-        tmax: f32,
-    ) -> (u32, [f32; WIDTH], &'a [u32; WIDTH]) {
-        let node = accel.nodes.get_unchecked(cur);
-        let (mask, tn) = Self::test(node, r, tmin, tmax);
-        (mask, tn, &node.child)
+    unsafe fn test_flat(node: &FlatNode, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        let _ = (node, r, tmin, tmax);
+        unreachable!("a kernel without FLAT reads the 8-bit planes")
     }
 }
 struct ScalarTest;
@@ -885,17 +882,10 @@ impl BoxTest for AvxFlatTest {
     unsafe fn test(node: &Node, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         x86::test_avx2(node, r, tmin, tmax)
     }
+    const FLAT: bool = true;
     #[inline(always)]
-    unsafe fn test_at<'a>(
-        accel: &'a Accel,
-        cur: usize,
-        r: &BoxRay,
-        tmin: f32,
-        tmax: f32,
-    ) -> (u32, [f32; WIDTH], &'a [u32; WIDTH]) {
-        let node = accel.flat.get_unchecked(cur);
-        let (mask, tn) = x86::test_avx2_flat(node, r, tmin, tmax);
-        (mask, tn, &node.child)
+    unsafe fn test_flat(node: &FlatNode, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
+        x86::test_avx2_flat(node, r, tmin, tmax)
     }
 }
 
@@ -1694,7 +1684,15 @@ impl Accel {
                     return tmax;
                 }
             } else {
-                let (mut mask, tn, child) = T::test_at(self, cur as usize, &r, tmin, tmax);
+                let (mut mask, tn, child) = if T::FLAT {
+                    let node = self.flat.get_unchecked(cur as usize);
+                    let (mask, tn) = T::test_flat(node, &r, tmin, tmax);
+                    (mask, tn, &node.child)
+                } else {
+                    let node = self.nodes.get_unchecked(cur as usize);
+                    let (mask, tn) = T::test(node, &r, tmin, tmax);
+                    (mask, tn, &node.child)
+                };
                 if mask != 0 {
                     let lane = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
