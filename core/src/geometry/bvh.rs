@@ -82,7 +82,8 @@ struct Node {
 const EMPTY_NODE: Node =
     Node { origin: [0.0; 3], used: 0, scale: [1.0; 4], planes: [[0; WIDTH]; 6], child: [0; WIDTH] };
 
-/// A [`Node`] with its planes decoded to f32, bit for bit as the box tests decode them, for
+/// A [`Node`] with its planes decoded to f32, bit for bit as the box tests decode them (the
+/// AVX2 test's fused multiply-add included, short of a node spanning about 1e38), for
 /// trees whose copy of them costs at most [`FLAT_BYTES`] (the AVX2 kernel then reads these:
 /// a box test without the eighteen instructions of decoding, the same boxes, so the same
 /// traversal and the same images). 256 bytes, 32 a child.
@@ -747,7 +748,7 @@ mod x86 {
         slabs_avx2(plane, node.used, r, tmin, tmax)
     }
 
-    /// [`test_avx2`] on a node's decoded planes: the same IEEE operations on the same values.
+    /// [`test_avx2`] on a node's decoded planes ([`FlatNode`]): the same boxes.
     #[inline(always)]
     pub unsafe fn test_avx2_flat(node: &FlatNode, r: &BoxRay, tmin: f32, tmax: f32) -> (u32, [f32; WIDTH]) {
         slabs_avx2(|p| _mm256_load_ps(node.planes[p].as_ptr()), node.used, r, tmin, tmax)
@@ -957,7 +958,8 @@ impl<'a> Query<'a> {
         Query::from(shapes, ray, SpawnedFrom::NOTHING)
     }
 
-    /// This query, fresh, along `ray` instead ([`Query::new`]'s for it).
+    /// A query fresh from [`Query::new`], along `ray` instead: only the ray and its
+    /// constants change (the other fields are the same for every fresh query).
     #[inline(always)]
     fn aim(&mut self, ray: &'a Ray) {
         self.ray = ray;
@@ -1639,6 +1641,7 @@ impl Accel {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn closest_avx(&self, q: &mut Query) -> f32 {
+        debug_assert!(self.flat.is_empty() || self.flat.len() == self.nodes.len());
         if self.flat.is_empty() {
             self.traverse::<AvxTest, false>(q)
         } else {
@@ -1649,6 +1652,7 @@ impl Accel {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn any_avx(&self, q: &mut Query) -> f32 {
+        debug_assert!(self.flat.is_empty() || self.flat.len() == self.nodes.len());
         if self.flat.is_empty() {
             self.traverse::<AvxTest, true>(q)
         } else {

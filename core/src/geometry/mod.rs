@@ -177,7 +177,7 @@ pub struct RayPre {
 impl RayPre {
     pub fn new(d: Vec3) -> RayPre {
         use glam::{BVec3A, Vec3A, Vec3Swizzles};
-        // The dominant axis kz (ties as before: x over y over z, z where x and y tie with it),
+        // The dominant axis kz (a tie goes to the later axis, as before),
         // and d's coordinates in the order kz + 1, kz + 2, kz, chosen in a register's lanes
         // without branches: a bounce's direction is random, so branches on it mispredict about
         // half the time (they were a fifth of `Accel::closest`'s own time on textured.xml), and

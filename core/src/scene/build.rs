@@ -68,8 +68,9 @@ pub(crate) const CURVE_PARSE: u64 = 96;
 const BVH_BUILD_PER_PRIM: u64 = 384;
 const BVH_ORDER_PER_PRIM: u64 = 20;
 const BVH_KEPT_PER_PRIM: u64 = 64;
-/// The decoded copy of a small scene's tree, at most (`geometry::bvh::FLAT_BYTES`).
-const FLAT_KEPT: u64 = crate::geometry::bvh::FLAT_BYTES as u64;
+/// The decoded copy of a small scene's tree per primitive (256 bytes a node; hair.xml has
+/// 0.14 nodes a primitive, 36 bytes), up to `geometry::bvh::FLAT_BYTES` in all.
+const FLAT_PER_PRIM: u64 = 48;
 
 /// A scene's load within its [`LoadLimits`](super::LoadLimits): the memory counted so far and
 /// the deadline.
@@ -240,6 +241,7 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
     let infinite_lights =
         (0..b.lights.len() as u32).filter(|&i| b.lights[i as usize].is_infinite()).collect();
     let prims: u64 = b.shapes.iter().map(|s| s.prim_count() as u64).sum();
+    let flat = prims.saturating_mul(FLAT_PER_PRIM).min(crate::geometry::bvh::FLAT_BYTES as u64);
     b.budget
         .charge(
             &format!("the BVH of {prims} primitives"),
@@ -247,8 +249,8 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
                 .min(crate::geometry::bvh::BATCH as u64)
                 .saturating_mul(BVH_BUILD_PER_PRIM)
                 .saturating_add(prims.saturating_mul(BVH_KEPT_PER_PRIM + BVH_ORDER_PER_PRIM))
-                .saturating_add(FLAT_KEPT),
-            prims.saturating_mul(BVH_KEPT_PER_PRIM).saturating_add(FLAT_KEPT),
+                .saturating_add(flat),
+            prims.saturating_mul(BVH_KEPT_PER_PRIM).saturating_add(flat),
         )
         .map_err(|e| SceneError::file(&doc.file, e))?;
     let accel =
