@@ -1252,9 +1252,7 @@ impl Accel {
         accel.groups = groups.iter().map(|g| Accel::build_over(shapes, g, batch)).collect();
         let nodes = accel.nodes.len() + accel.groups.iter().map(|g| g.nodes.len()).sum::<usize>();
         if nodes * std::mem::size_of::<FlatNode>() <= FLAT_BYTES {
-            let decode = |a: &mut Accel| a.flat = a.nodes.iter().map(FlatNode::of).collect();
-            decode(&mut accel);
-            accel.groups.iter_mut().for_each(decode);
+            accel.set_flat(true);
         }
         accel
     }
@@ -1272,8 +1270,8 @@ impl Accel {
         format!("{}{flat}", self.kernel.name())
     }
 
-    /// With or without the decoded planes, whatever the tree's size (tests of both paths).
-    #[cfg(test)]
+    /// With or without the decoded planes, in this tree and its groups' (the build decides by
+    /// size; tests trace both ways).
     fn set_flat(&mut self, on: bool) {
         self.flat = if on { self.nodes.iter().map(FlatNode::of).collect() } else { Vec::new() };
         for g in &mut self.groups {
