@@ -7,8 +7,8 @@
 #
 # 1. builds furnace instrumented (-Cprofile-generate) into target/pgo/gen;
 # 2. renders the training scenes with it (below: shipped scenes that the benchmarks do not
-#    use, and a fur ball it makes, so that the gains measured on the benchmark scenes are on
-#    scenes it was not trained on), which writes the branch and call counts;
+#    use, so that the gains measured on the benchmark scenes are on scenes it was not trained
+#    on), which writes the branch and call counts;
 # 3. merges them with llvm-profdata (rustup's llvm-tools component, added if missing) and
 #    builds furnace again with them (-Cprofile-use) into target/pgo/use;
 # 4. checks that this binary renders the same bytes as a plain `cargo build --release` on
@@ -76,52 +76,13 @@ step "1/4 instrumented build"
 build target/pgo/gen "-Cprofile-generate=$data"
 gen=$(realpath "target/pgo/gen/$host/dist/furnace")
 
-# Dense fur for the training, made here (none of the shipped scenes has any but the fur ball
-# that the benchmarks render): 3000 B-spline fibres of 5 points (48,000 segments) on a ball
-# of radius 0.6, each along a random direction from awk's rand() (srand(7)) and bent a random
-# way, lit by sun.xml's sun/sky map. With it, against the same build without it: render
-# instructions hair -2.0%, whimsical -1.5%, cbox -0.5%; hair +1.8% and whimsical +3.3%
-# Msamples/s (docs/BENCHMARKS.md, "Issue 15, twenty-seventh step").
-fur=$(realpath -m target/pgo/fur)
-mkdir -p "$fur"
-cp tests/scenes/assets/sun_sky.exr "$fur/"
-awk 'BEGIN {
-    srand(7); pi = 3.14159265
-    for (c = 0; c < 3000; c++) {
-        z = 2 * rand() - 1; a = 2 * pi * rand(); s = sqrt(1 - z * z)
-        nx = s * cos(a); ny = z; nz = s * sin(a)
-        bx = rand() - 0.5; by = rand() - 0.5; bz = rand() - 0.5
-        for (k = 0; k < 5; k++) {
-            h = 0.6 + 0.06 * k; w = 0.01 * k * k
-            printf "%.5f %.5f %.5f %.5f\n", nx * h + bx * w, ny * h + by * w, nz * h + bz * w, 0.005 - 0.0009 * k
-        }
-        print ""
-    }
-}' > "$fur/fur.txt"
-cat > "$fur/fur.xml" <<XML
-<scene version="3.0.0">
-    <integrator type="path"><integer name="max_depth" value="8"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="45"/>
-        <transform name="to_world"><lookat origin="0.4, 0.9, 2.6" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="160"/><integer name="height" value="120"/><rfilter type="box"/></film>
-    </sensor>
-    <emitter type="envmap"><string name="filename" value="sun_sky.exr"/></emitter>
-    <shape type="sphere"><float name="radius" value="0.6"/>
-        <bsdf type="diffuse"><rgb name="reflectance" value="0.3, 0.2, 0.15"/></bsdf></shape>
-    <shape type="bsplinecurve"><string name="filename" value="fur.txt"/>
-        <bsdf type="hair"><float name="eumelanin" value="0.8"/><float name="pheomelanin" value="0.5"/></bsdf></shape>
-</scene>
-XML
-
 # The training set: every feature the renderer has (triangles, spheres, fibres, instances,
 # textures, the environment map and a sun, every material, the thin lens), none of the
 # scenes that bench/vs-mitsuba.sh and bench/ab.sh measure.
 train=(
     examples/materials.xml:16 examples/depth-of-field.xml:16 tests/scenes/checker.xml:16
     tests/scenes/fibre.xml:16 tests/scenes/instances.xml:8 tests/scenes/lights.xml:16
-    tests/scenes/roughplastic.xml:16 tests/scenes/sun.xml:16 "$fur/fur.xml:16"
+    tests/scenes/roughplastic.xml:16 tests/scenes/sun.xml:16
 )
 step "2/4 training on ${#train[@]} scenes"
 for entry in "${train[@]}"; do
