@@ -6,11 +6,13 @@
 #   bench/vs-mitsuba.sh [THREADS=2] [REPEATS=3] [SCENE.xml:SPP ...]
 #
 # SEEDS=N (default 1): both errors are medians over seeds 0..N-1 (under a small bright sun
-# one seed's relMSE is a lottery of fireflies). FURNACE=BINARY measures that binary instead of
+# one seed's relMSE is a lottery of fireflies); ERRORS=0 leaves the error columns out. FURNACE=BINARY measures that binary instead of
 # building this tree; PGO=1 builds it profile-guided (deploy/build-pgo.sh, about 8 minutes, the
 # binary to ship) and measures that. Default scenes: tests/scenes/{cbox,textured,envmap,
 # thinlens,hair}.xml at 64 spp and examples/whimsical.xml at 16. Needs Mitsuba 3:
-# bench/peers/setup.sh (venv outside the repo, $PEERS_VENV, default ../peers-venv).
+# bench/peers/setup.sh (venv outside the repo, $PEERS_VENV, default ../peers-venv), or MITSUBA_PY
+# (a python3 whose PYTHONPATH holds mitsuba: bench/peers/pack-offline.sh packs one for a
+# machine without a network).
 #
 # Samples/s: median over REPEATS of width * height * spp / render seconds (scene loading
 # excluded for all three); llvm gets one untimed warm-up per scene to fill Dr.Jit's kernel
@@ -28,7 +30,7 @@ if [ ${#SCENES[@]} -eq 0 ]; then
     for s in cbox textured envmap thinlens hair; do SCENES+=("$ROOT/tests/scenes/$s.xml:64"); done
     SCENES+=("$ROOT/examples/whimsical.xml:16")
 fi
-PY="$ROOT/bench/peers/py.sh"
+PY="${MITSUBA_PY:-$ROOT/bench/peers/py.sh}"   # or a python3 whose PYTHONPATH holds mitsuba (bench/peers/pack-offline.sh)
 TMP="$(mktemp -d)"; trap 'rm -rf "$TMP"' EXIT
 
 if [ -z "${FURNACE:-}" ] && [ -n "${PGO:-}" ]; then   # PGO=1: the profile-guided build, as shipped
@@ -74,7 +76,7 @@ for entry in "${SCENES[@]}"; do
 
     ref="$ROOT/tests/scenes/refs/$name.exr"
     m_err="-"; f_spp="-"; tte="-"
-    if [ -f "$ref" ]; then
+    if [ -f "$ref" ] && [ "${ERRORS:-1}" != 0 ]; then
         : > "$TMP/me"
         for seed in $(seq 0 $((SEEDS - 1))); do
             rm -f "$TMP/m64.exr"
