@@ -18,9 +18,9 @@
 #
 # The target's python3 needs numpy. What a device call carries is counted with the repository,
 # which counts about 32 MiB there (5,000 small files by their disk blocks, it seems: 59 MiB of
-# bytes in all was refused), against 64 MiB a
-# call: so send the archives and a furnace binary (compressed by xz: 4 MB) in two or three calls
-# to the same warm machine (`split` libllvm.tar.xz, cat its parts there), unpacking each into /tmp.
+# bytes in all was refused), against 64 MiB a call. So send the archives and a furnace binary
+# (compressed by xz: 4 MB) in two or three calls to the same warm machine (`split`
+# libllvm.tar.xz, cat its parts there), unpacking each into /tmp.
 # docs/BENCHMARKS.md, "Multi-core scaling", fifth run, lists the calls that did this.
 set -euo pipefail
 OUT="$(mkdir -p "$1" && cd "$1" && pwd)"; PYV="${2:-3.12}"
