@@ -107,7 +107,12 @@ impl Ablation {
         if scene.bsdfs.iter().any(|b| b.any(&|b| matches!(b, Bsdf::Hair(_)))) {
             all.push(Ablation::DiffuseInsteadOfHair);
         }
-        if scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| matches!(t, Texture::Bitmap(_))) {
+        if scene
+            .bsdfs
+            .iter()
+            .flat_map(|b| b.textures())
+            .any(|t| matches!(t, Texture::Bitmap(_) | Texture::Bytes(_)))
+        {
             all.extend(FilterType::ALL.map(Ablation::TextureFilter));
         }
         // max_depth counts path vertices (Mitsuba: -1 unbounded); 2 is direct light only.

@@ -309,6 +309,10 @@ impl PixelBundles {
     /// (film positions `[x, x + 1) x [y, y + 1)`, any lens sample), with a margin for the
     /// rays' rounding: 1/64 of a pixel and 1e-5 (1 + s^2) in direction (s: the rays' slope),
     /// and 1e-5 of the camera's distance from the world origin in the lens radius.
+    // (Always inlined: release builds' inliner dropped it from `render_region` when unrelated
+    // code grew, +3% instructions on textured; docs/BENCHMARKS.md, "Issue 15, twenty-eighth
+    // step".)
+    #[inline(always)]
     pub fn pixel(&self, x: u32, y: u32) -> Bundle {
         // Camera-space direction (z = 1) ranges of the pixel, grown by the margin.
         // The margin grows with the rays' slope s against the view axis: a ray's f32 rounding

@@ -147,6 +147,10 @@ impl PlanDescription {
                         }
                     }
                 }
+                Texture::Bytes(bt) => {
+                    let (w, h, filter) = (bt.bitmap.width, bt.bitmap.height, bt.filter.name());
+                    format!("texture: bitmap {w}x{h} {filter} lookup, no footprint, 8-bit texels")
+                }
                 Texture::Checkerboard(_) => "texture: checkerboard".to_string(),
                 Texture::Const(_) => continue,
             };

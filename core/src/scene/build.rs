@@ -17,7 +17,7 @@ use crate::geometry::{Accel, Geometry, Instance, Shape};
 use crate::light::Light;
 use crate::math::Rgb;
 use crate::plan::Techniques;
-use crate::texture::{Bitmap, Texture};
+use crate::texture::{Bitmap, Image, Texture};
 
 pub(crate) type R<T> = Result<T, SceneError>;
 
@@ -153,7 +153,7 @@ pub(crate) struct Builder<'d> {
     /// BSDFs being built, one inside another.
     bsdf_depth: usize,
     textures: HashMap<usize, Texture>,
-    bitmaps: HashMap<(std::path::PathBuf, bool), Arc<Bitmap>>,
+    bitmaps: HashMap<(std::path::PathBuf, bool, bool), Image>,
     bsdfs: Vec<Bsdf>,
     shapes: Vec<Shape>,
     lights: Vec<Light>,
@@ -289,38 +289,72 @@ impl Builder<'_> {
         raw: bool,
         extra: u64,
     ) -> Result<Arc<Bitmap>, String> {
+        let kept = TEXEL_KEPT + extra;
+        self.decoded(
+            path,
+            &format!("image raw={raw}"),
+            kept,
+            |max| Bitmap::load_within(path, raw, max),
+            |b| ((b.width * b.height) as u64, kept),
+        )
+    }
+
+    /// A texture's image, as [`Builder::bitmap`] loads it, but a large 8-bit file keeps its
+    /// bytes (3 a texel, not 12) where `keep_bytes`.
+    fn image(&mut self, path: &std::path::Path, raw: bool, keep_bytes: bool) -> Result<Arc<Image>, String> {
+        let above = if keep_bytes { crate::texture::KEEP_BYTES_ABOVE } else { u64::MAX };
+        let what = format!("texture raw={raw} bytes={keep_bytes}");
+        let read = |max| Image::load_keeping_bytes_above(path, raw, max, above);
+        self.decoded(path, &what, TEXEL_KEPT, read, |i| ((i.width() * i.height()) as u64, i.texel_bytes()))
+    }
+
+    /// What `read` (given the most texels that fit) decodes from the image at `path`, charged
+    /// to the budget: [`TEXEL_LOAD`] bytes a texel while loading, what `size` says (texels,
+    /// bytes each) kept; `kept` is the estimate of the latter, before.
+    fn decoded<T: Send + Sync + 'static>(
+        &mut self,
+        path: &std::path::Path,
+        what: &str,
+        kept: u64,
+        read: impl FnOnce(u64) -> Result<T, crate::texture::BitmapError>,
+        size: impl Fn(&T) -> (u64, u64),
+    ) -> Result<Arc<T>, String> {
         self.budget.in_time()?;
         let file = file_size(path);
         // The file is read whole: refused before it is, if it alone does not fit.
         self.budget.charge("an image file", file, 0)?;
         let room = self.budget.room().saturating_sub(file);
-        let fits = room / TEXEL_LOAD.max(TEXEL_KEPT + extra);
-        let what = format!("image raw={raw}");
-        let read = || Bitmap::load_within(path, raw, fits.min(crate::texture::MAX_TEXELS));
-        let bitmap = self.cached(path, &what, read).map_err(|e| match e {
+        let fits = room / TEXEL_LOAD.max(kept);
+        let image = self.cached(path, what, || read(fits.min(crate::texture::MAX_TEXELS))).map_err(|e| match e {
             crate::texture::BitmapError::TooLarge { width, height, .. } if fits < crate::texture::MAX_TEXELS => format!(
                 "a {width} x {height} image does not fit in what is left of the {:.1} MiB a scene may take to load (--max-scene-memory-mb)",
                 self.budget.limits.max_bytes as f64 / (1u64 << 20) as f64
             ),
             e => e.to_string(),
         })?;
-        let texels = (bitmap.width * bitmap.height) as u64;
+        let (texels, kept) = size(&image);
         let load = file.saturating_add(texels.saturating_mul(TEXEL_LOAD));
-        self.budget.charge("an image", load, texels.saturating_mul(TEXEL_KEPT + extra))?;
-        Ok(bitmap)
+        self.budget.charge("an image", load, texels.saturating_mul(kept))?;
+        Ok(image)
     }
 
     pub(crate) fn err(&self, pos: Pos, msg: impl Into<String>) -> SceneError {
         self.doc.err(pos, msg)
     }
 
-    /// An image read once however many textures use it (by path and `raw`).
-    pub(crate) fn shared_bitmap(&mut self, path: &std::path::Path, raw: bool) -> Result<Arc<Bitmap>, String> {
-        let key = (path.to_path_buf(), raw);
+    /// A texture's image, read once however many textures use it (by path, `raw` and
+    /// `keep_bytes`).
+    pub(crate) fn shared_image(
+        &mut self,
+        path: &std::path::Path,
+        raw: bool,
+        keep_bytes: bool,
+    ) -> Result<Image, String> {
+        let key = (path.to_path_buf(), raw, keep_bytes);
         if let Some(b) = self.bitmaps.get(&key) {
             return Ok(b.clone());
         }
-        let b = self.bitmap(path, raw, 0)?;
+        let b = (*self.image(path, raw, keep_bytes)?).clone();
         self.assets.push(path.to_path_buf());
         self.bitmaps.insert(key, b.clone());
         Ok(b)

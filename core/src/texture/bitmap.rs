@@ -134,63 +134,7 @@ impl Bitmap {
     /// Decodes an image held in memory (EXR when `exr`, else whatever format its bytes say),
     /// refusing one that declares more than `max_texels` before allocating it.
     pub fn decode(bytes: &[u8], exr: bool, raw: bool, max_texels: u64) -> Result<Bitmap, BitmapError> {
-        let too_large = |width: u64, height: u64| {
-            (width.saturating_mul(height) > max_texels).then_some(BitmapError::TooLarge {
-                width,
-                height,
-                limit: max_texels,
-            })
-        };
-        let bmp = if exr {
-            let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)?;
-            // Every layer counts (the reader may decode them all to find the RGBA one).
-            let mut texels = 0u64;
-            for h in &meta.headers {
-                let (w, h) = (h.layer_size.width() as u64, h.layer_size.height() as u64);
-                texels = texels.saturating_add(w.saturating_mul(h));
-                if let Some(e) = too_large(w, h).or_else(|| too_large(texels, 1)) {
-                    return Err(e);
-                }
-            }
-            Self::decode_exr(bytes)?
-        } else {
-            let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
-                .with_guessed_format()
-                .map_err(image::ImageError::IoError)?;
-            reader.limits(limits_for(max_texels));
-            let (w, h) = reader.into_dimensions()?;
-            if let Some(e) = too_large(w as u64, h as u64) {
-                return Err(e);
-            }
-            let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
-                .with_guessed_format()
-                .map_err(image::ImageError::IoError)?;
-            reader.limits(limits_for(max_texels));
-            let img = reader.decode()?;
-            let is_float = matches!(img.color(), image::ColorType::Rgb32F | image::ColorType::Rgba32F);
-            let rgb = img.to_rgb32f(); // normalises integers to [0, 1]; no linearisation
-            let decode = !is_float && !raw;
-            let texels = rgb
-                .pixels()
-                .map(|p| {
-                    let c = Rgb::new(p[0], p[1], p[2]);
-                    if decode {
-                        Rgb::new(srgb_byte_or_any(c.x), srgb_byte_or_any(c.y), srgb_byte_or_any(c.z))
-                    } else {
-                        c
-                    }
-                })
-                .collect();
-            Bitmap { width: rgb.width() as usize, height: rgb.height() as usize, texels }
-        };
-        if bmp.width == 0 || bmp.height == 0 {
-            return Err(BitmapError::Empty);
-        }
-        let bad = bmp.texels.iter().filter(|t| !t.is_finite()).count();
-        if bad > 0 {
-            return Err(BitmapError::NonFinite(bad));
-        }
-        Ok(bmp)
+        Ok(decode_image(bytes, exr, raw, max_texels, u64::MAX)?.into_f32())
     }
 
     fn decode_exr(bytes: &[u8]) -> Result<Bitmap, BitmapError> {
@@ -222,9 +166,7 @@ impl Bitmap {
 
     #[inline]
     pub fn nearest(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
-        let x = wrap.apply(crate::math::floor(uv.x * self.width as f32) as i64, self.width as i64);
-        let y = wrap.apply(crate::math::floor(uv.y * self.height as f32) as i64, self.height as i64);
-        self.texel(x, y)
+        self.texels[nearest_index(self.width, self.height, uv, wrap)]
     }
 
     #[inline]
@@ -236,31 +178,282 @@ impl Bitmap {
     /// around and clamps at the poles). Always inlined, so that wraps known at the call fold.
     #[inline(always)]
     pub fn bilinear_wrapped(&self, uv: Vec2, wrap_x: WrapMode, wrap_y: WrapMode) -> Rgb {
-        // (Through i64: the same f32 as from usize, in one instruction instead of several.)
-        let px = uv.x * self.width as i64 as f32 - 0.5;
-        let py = uv.y * self.height as i64 as f32 - 0.5;
-        let (x0, y0, fx0, fy0) = if px.abs() < 8_388_608.0 && py.abs() < 8_388_608.0 {
-            // floor as crate::math::floor takes it below 2^23 (the truncation, less one where
-            // it rounded up), in integers: the same value.
-            // SAFETY: |px|, |py| < 2^23, within i32.
-            let (tx, ty) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
-            let (x0, y0) = (tx - (px < tx as f32) as i32, ty - (py < ty as f32) as i32);
-            (x0 as i64, y0 as i64, x0 as f32, y0 as f32)
-        } else {
-            let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
-            (fx0 as i64, fy0 as i64, fx0, fy0)
-        };
-        let (tx, ty) = (px - fx0, py - fy0);
-        let (w, h) = (self.width as i64, self.height as i64);
-        let x = wrap_x.apply_pair(x0, w);
-        let y = wrap_y.apply_pair(y0, h);
-        let (r0, r1) = (y[0] * self.width, y[1] * self.width);
-        blend(&self.texels, [r0 + x[0], r0 + x[1], r1 + x[0], r1 + x[1]], tx, ty)
+        let (i, tx, ty) = bilinear_taps(self.width, self.height, uv, wrap_x, wrap_y);
+        blend(&self.texels, i, tx, ty)
     }
 
     pub fn mean(&self) -> Rgb {
         let s = self.texels.iter().fold(glam::DVec3::ZERO, |a, t| a + t.as_dvec3());
         (s / self.texels.len() as f64).as_vec3()
+    }
+}
+
+/// An 8-bit texture of more texels than this (48 MiB as f32 RGB), looked up `nearest` or
+/// `bilinear`, keeps its bytes: 3 a texel, a quarter of the memory, and faster where the f32
+/// texels would not fit the caches. Smaller ones are faster as f32, whose lookups read a texel
+/// without a table (docs/BENCHMARKS.md, "Issue 15, twenty-eighth step": 512 x 512 as bytes
+/// -12%, 2048 x 2048 -6%; 4096 x 4096 +12%).
+pub const KEEP_BYTES_ABOVE: u64 = 1 << 22;
+
+/// [`Bitmap::decode`], keeping an 8-bit image of more than `bytes_above` texels as its bytes.
+fn decode_image(
+    bytes: &[u8],
+    exr: bool,
+    raw: bool,
+    max_texels: u64,
+    bytes_above: u64,
+) -> Result<Image, BitmapError> {
+    let too_large = |width: u64, height: u64| {
+        (width.saturating_mul(height) > max_texels).then_some(BitmapError::TooLarge {
+            width,
+            height,
+            limit: max_texels,
+        })
+    };
+    let bmp = if exr {
+        let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)?;
+        // Every layer counts (the reader may decode them all to find the RGBA one).
+        let mut texels = 0u64;
+        for h in &meta.headers {
+            let (w, h) = (h.layer_size.width() as u64, h.layer_size.height() as u64);
+            texels = texels.saturating_add(w.saturating_mul(h));
+            if let Some(e) = too_large(w, h).or_else(|| too_large(texels, 1)) {
+                return Err(e);
+            }
+        }
+        Bitmap::decode_exr(bytes)?
+    } else {
+        let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(image::ImageError::IoError)?;
+        reader.limits(limits_for(max_texels));
+        let (w, h) = reader.into_dimensions()?;
+        if let Some(e) = too_large(w as u64, h as u64) {
+            return Err(e);
+        }
+        let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(image::ImageError::IoError)?;
+        reader.limits(limits_for(max_texels));
+        let img = reader.decode()?;
+        use image::ColorType::{La8, Rgb8, Rgba8, L8};
+        let color = [L8, La8, Rgb8, Rgba8].iter().position(|&c| c == img.color());
+        let keep_bytes = img.width() as u64 * img.height() as u64 > bytes_above;
+        if let (true, Some(color)) = (keep_bytes, color) {
+            let (width, height) = (img.width() as usize, img.height() as usize);
+            if width == 0 || height == 0 {
+                return Err(BitmapError::Empty);
+            }
+            let table = &BYTE_TABLES[color][!raw as usize];
+            let bytes = img.into_rgb8().into_raw();
+            return Ok(Image::Bytes(std::sync::Arc::new(Bitmap8 { width, height, bytes, table })));
+        }
+        let is_float = matches!(img.color(), image::ColorType::Rgb32F | image::ColorType::Rgba32F);
+        let rgb = img.to_rgb32f(); // normalises integers to [0, 1]; no linearisation
+        let decode = !is_float && !raw;
+        let texels = rgb
+            .pixels()
+            .map(|p| {
+                let c = Rgb::new(p[0], p[1], p[2]);
+                if decode {
+                    Rgb::new(srgb_byte_or_any(c.x), srgb_byte_or_any(c.y), srgb_byte_or_any(c.z))
+                } else {
+                    c
+                }
+            })
+            .collect();
+        Bitmap { width: rgb.width() as usize, height: rgb.height() as usize, texels }
+    };
+    if bmp.width == 0 || bmp.height == 0 {
+        return Err(BitmapError::Empty);
+    }
+    let bad = bmp.texels.iter().filter(|t| !t.is_finite()).count();
+    if bad > 0 {
+        return Err(BitmapError::NonFinite(bad));
+    }
+    Ok(Image::F32(std::sync::Arc::new(bmp)))
+}
+
+/// The texel (index `y * width + x`) that a nearest lookup at `uv` reads.
+#[inline(always)]
+fn nearest_index(width: usize, height: usize, uv: Vec2, wrap: WrapMode) -> usize {
+    let x = wrap.apply(crate::math::floor(uv.x * width as f32) as i64, width as i64);
+    let y = wrap.apply(crate::math::floor(uv.y * height as f32) as i64, height as i64);
+    y * width + x
+}
+
+/// The four texels (indices `y * width + x`: top left, top right, bottom left, bottom right)
+/// a bilinear lookup at `uv` blends, and its weights along x and y.
+#[inline(always)]
+fn bilinear_taps(
+    width: usize,
+    height: usize,
+    uv: Vec2,
+    wrap_x: WrapMode,
+    wrap_y: WrapMode,
+) -> ([usize; 4], f32, f32) {
+    // (Through i64: the same f32 as from usize, in one instruction instead of several.)
+    let px = uv.x * width as i64 as f32 - 0.5;
+    let py = uv.y * height as i64 as f32 - 0.5;
+    let (x0, y0, fx0, fy0) = if px.abs() < 8_388_608.0 && py.abs() < 8_388_608.0 {
+        // floor as crate::math::floor takes it below 2^23 (the truncation, less one where
+        // it rounded up), in integers: the same value.
+        // SAFETY: |px|, |py| < 2^23, within i32.
+        let (tx, ty) = unsafe { (px.to_int_unchecked::<i32>(), py.to_int_unchecked::<i32>()) };
+        let (x0, y0) = (tx - (px < tx as f32) as i32, ty - (py < ty as f32) as i32);
+        (x0 as i64, y0 as i64, x0 as f32, y0 as f32)
+    } else {
+        let (fx0, fy0) = (crate::math::floor(px), crate::math::floor(py));
+        (fx0 as i64, fy0 as i64, fx0, fy0)
+    };
+    let (tx, ty) = (px - fx0, py - fy0);
+    let (w, h) = (width as i64, height as i64);
+    let x = wrap_x.apply_pair(x0, w);
+    let y = wrap_y.apply_pair(y0, h);
+    let (r0, r1) = (y[0] * width, y[1] * width);
+    ([r0 + x[0], r0 + x[1], r1 + x[0], r1 + x[1]], tx, ty)
+}
+
+/// An image as a texture keeps it: linear f32 texels, or an 8-bit image's bytes.
+#[derive(Clone, Debug)]
+pub enum Image {
+    F32(std::sync::Arc<Bitmap>),
+    Bytes(std::sync::Arc<Bitmap8>),
+}
+
+/// An 8-bit image kept as its bytes: 3 a texel, a quarter of [`Bitmap`]'s 12. Each byte is
+/// read through a table of the 256 values that [`Bitmap::decode`] makes of it, so lookups
+/// read the same f32 texels, bit for bit, and blend them the same way.
+#[derive(Clone, Debug)]
+pub struct Bitmap8 {
+    pub width: usize,
+    pub height: usize,
+    /// RGB, row 0 at the top.
+    bytes: Vec<u8>,
+    table: &'static ByteTable,
+}
+
+/// What [`Bitmap::decode`] makes of each byte value of each channel, by the image's colour
+/// type (L8, La8, Rgb8, Rgba8) and `[raw, sRGB-decoded]`. Taken from the image crate's own
+/// conversion of the 256 values (the one `decode` uses: it does not take every byte `k` to
+/// `k / 255` exactly, and not the same way for every colour type), so equal by construction.
+type ByteTable = [[f32; 256]; 3];
+static BYTE_TABLES: std::sync::LazyLock<[[ByteTable; 2]; 4]> = std::sync::LazyLock::new(|| {
+    use image::DynamicImage as D;
+    let k = |x: u32| x as u8;
+    let images = [
+        D::ImageLuma8(image::ImageBuffer::from_fn(256, 1, |x, _| image::Luma([k(x)]))),
+        D::ImageLumaA8(image::ImageBuffer::from_fn(256, 1, |x, _| image::LumaA([k(x), k(x)]))),
+        D::ImageRgb8(image::ImageBuffer::from_fn(256, 1, |x, _| image::Rgb([k(x); 3]))),
+        D::ImageRgba8(image::ImageBuffer::from_fn(256, 1, |x, _| image::Rgba([k(x); 4]))),
+    ];
+    images.map(|img| {
+        let f = img.to_rgb32f();
+        let raw: ByteTable = std::array::from_fn(|c| std::array::from_fn(|x| f.get_pixel(x as u32, 0)[c]));
+        [raw, raw.map(|t| t.map(srgb_byte_or_any))]
+    })
+});
+
+impl Bitmap8 {
+    /// Texel `k` (`y * width + x`).
+    #[inline(always)]
+    fn at(&self, k: usize) -> Rgb {
+        let b = &self.bytes[3 * k..3 * k + 3];
+        let t = self.table;
+        Rgb::new(t[0][b[0] as usize], t[1][b[1] as usize], t[2][b[2] as usize])
+    }
+
+    pub fn texel(&self, x: usize, y: usize) -> Rgb {
+        self.at(y * self.width + x)
+    }
+
+    #[inline]
+    pub fn nearest(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
+        self.at(nearest_index(self.width, self.height, uv, wrap))
+    }
+
+    /// [`Bitmap::bilinear`]: the same texels, blended the same way.
+    #[inline]
+    pub fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
+        let (i, tx, ty) = bilinear_taps(self.width, self.height, uv, wrap, wrap);
+        // `blend`'s operations, in its order, on texels made in registers (not stored for its
+        // 16-byte loads, which would wait on the stores).
+        let top = self.at(i[0]) * (1.0 - tx) + self.at(i[1]) * tx;
+        let bottom = self.at(i[2]) * (1.0 - tx) + self.at(i[3]) * tx;
+        top * (1.0 - ty) + bottom * ty
+    }
+
+    /// [`Bitmap::mean`]: the same sums in the same order.
+    pub fn mean(&self) -> Rgb {
+        let n = self.width * self.height;
+        let s = (0..n).fold(glam::DVec3::ZERO, |a, k| a + self.at(k).as_dvec3());
+        (s / n as f64).as_vec3()
+    }
+
+    /// The linear f32 image (what [`Bitmap::decode`] makes of the same file).
+    pub fn to_f32(&self) -> Bitmap {
+        Bitmap {
+            width: self.width,
+            height: self.height,
+            texels: (0..self.width * self.height).map(|k| self.at(k)).collect(),
+        }
+    }
+}
+
+impl Image {
+    /// Loads as [`Bitmap::load`] does, but an 8-bit PNG or JPEG of more than
+    /// [`KEEP_BYTES_ABOVE`] texels keeps its bytes.
+    pub fn load_within(path: &Path, raw: bool, max_texels: u64) -> Result<Image, BitmapError> {
+        Image::load_keeping_bytes_above(path, raw, max_texels, KEEP_BYTES_ABOVE)
+    }
+
+    /// [`Image::load_within`], keeping the bytes of an 8-bit image of more than `above` texels.
+    pub fn load_keeping_bytes_above(
+        path: &Path,
+        raw: bool,
+        max_texels: u64,
+        above: u64,
+    ) -> Result<Image, BitmapError> {
+        let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+        let bytes = std::fs::read(path).map_err(image::ImageError::IoError)?;
+        decode_image(&bytes, ext == "exr", raw, max_texels, above)
+    }
+
+    pub fn width(&self) -> usize {
+        match self {
+            Image::F32(b) => b.width,
+            Image::Bytes(b) => b.width,
+        }
+    }
+
+    pub fn height(&self) -> usize {
+        match self {
+            Image::F32(b) => b.height,
+            Image::Bytes(b) => b.height,
+        }
+    }
+
+    /// Bytes kept a texel.
+    pub fn texel_bytes(&self) -> u64 {
+        match self {
+            Image::F32(_) => std::mem::size_of::<Rgb>() as u64,
+            Image::Bytes(_) => 3,
+        }
+    }
+
+    /// The linear f32 image (shared, or made from the bytes).
+    pub fn to_f32(&self) -> std::sync::Arc<Bitmap> {
+        match self {
+            Image::F32(b) => b.clone(),
+            Image::Bytes(b) => std::sync::Arc::new(b.to_f32()),
+        }
+    }
+
+    fn into_f32(self) -> Bitmap {
+        match self {
+            Image::F32(b) => std::sync::Arc::unwrap_or_clone(b),
+            Image::Bytes(b) => b.to_f32(),
+        }
     }
 }
 
@@ -322,9 +515,17 @@ pub(crate) fn from_scene(
         &[("repeat", WrapMode::Repeat), ("mirror", WrapMode::Mirror), ("clamp", WrapMode::Clamp)],
     )?;
     let to_uv = super::to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(glam::Mat4::IDENTITY));
-    let bitmap =
-        b.shared_bitmap(&path, raw).map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?;
     let mip = matches!(filter, FilterType::Trilinear | FilterType::Ewa);
+    // A large 8-bit image keeps its bytes where no pyramid is built from it.
+    let image = b
+        .shared_image(&path, raw, !mip)
+        .map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?;
+    let bitmap = match image {
+        Image::Bytes(bitmap) => {
+            return Ok(super::Texture::Bytes(Arc::new(super::BytesTexture { bitmap, filter, wrap, to_uv })))
+        }
+        Image::F32(bitmap) => bitmap,
+    };
     if mip {
         let texels = (bitmap.width * bitmap.height) as u64;
         let cost = texels.saturating_mul(crate::scene::build::MIP_TEXEL);
@@ -352,6 +553,7 @@ fn srgb_byte_or_any(v: f32) -> f32 {
 #[cfg(test)]
 mod load_tests {
     use super::*;
+    use std::sync::Arc;
 
     #[test]
     fn srgb_table_is_the_transfer_function() {
@@ -485,6 +687,149 @@ mod load_tests {
         let srgb = Bitmap::load(&png, false).unwrap().texels[0].x;
         let raw = Bitmap::load(&png, true).unwrap().texels[0].x;
         assert!((srgb - srgb_to_linear(188.0 / 255.0)).abs() < 1e-6 && (raw - 188.0 / 255.0).abs() < 1e-6);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// An 8-bit image kept as its bytes reads, through its table, the texels that the f32
+    /// decode of the same file holds, bit for bit: every texel, nearest and bilinear lookups
+    /// (each wrap mode, points near and far), and the mean; sRGB-decoded and raw; RGB, RGBA and
+    /// grey PNGs and a JPEG. A 16-bit PNG stays f32.
+    #[test]
+    fn bytes_kept_read_the_f32_texels_bit_for_bit() {
+        let dir = std::env::temp_dir().join(format!("furnace-bytes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (w, h) = (37u32, 23u32);
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        let bytes: Vec<u8> = (0..w * h * 4).map(|_| next() as u8).collect();
+        let rgb: Vec<u8> = bytes.chunks(4).flat_map(|c| [c[0], c[1], c[2]]).collect();
+        let grey: Vec<u8> = bytes.iter().step_by(4).copied().collect();
+        use image::ExtendedColorType as C;
+        let files = [
+            ("rgb.png", &rgb[..], C::Rgb8),
+            ("rgba.png", &bytes[..], C::Rgba8),
+            ("grey.png", &grey[..], C::L8),
+            ("rgb.jpg", &rgb[..], C::Rgb8),
+        ];
+        for (name, data, color) in files {
+            let path = dir.join(name);
+            image::save_buffer(&path, data, w, h, color).unwrap();
+            for raw in [false, true] {
+                let f32s = Bitmap::load(&path, raw).unwrap();
+                // Small: f32, unless bytes are asked for whatever the size.
+                assert!(matches!(Image::load_within(&path, raw, MAX_TEXELS).unwrap(), Image::F32(_)));
+                let kept = Image::load_keeping_bytes_above(&path, raw, MAX_TEXELS, 0).unwrap();
+                let Image::Bytes(b) = &kept else { panic!("{name}: not kept as bytes") };
+                assert_eq!((b.width, b.height, kept.texel_bytes()), (w as usize, h as usize, 3));
+                for y in 0..h as usize {
+                    for x in 0..w as usize {
+                        assert_eq!(
+                            b.texel(x, y).to_array().map(f32::to_bits),
+                            f32s.texel(x, y).to_array().map(f32::to_bits),
+                            "{name} raw {raw} {x} {y} {:?}",
+                            &b.bytes[3 * (y * b.width + x)..][..3]
+                        );
+                    }
+                }
+                assert_eq!(kept.to_f32().texels, f32s.texels);
+                assert_eq!(b.mean().to_array().map(f32::to_bits), f32s.mean().to_array().map(f32::to_bits));
+                for mode in [WrapMode::Repeat, WrapMode::Mirror, WrapMode::Clamp] {
+                    for k in 0..2000 {
+                        let r = |s: u64| ((s >> 11) as f32 / (1u64 << 53) as f32) * 6.0 - 3.0;
+                        let mut uv = Vec2::new(r(next()), r(next()));
+                        if k % 100 == 0 {
+                            uv *= 1e7; // past 2^23 texels
+                        }
+                        let bits = |c: Rgb| c.to_array().map(f32::to_bits);
+                        assert_eq!(
+                            bits(b.bilinear(uv, mode)),
+                            bits(f32s.bilinear(uv, mode)),
+                            "{name} {uv} {mode:?}"
+                        );
+                        assert_eq!(
+                            bits(b.nearest(uv, mode)),
+                            bits(f32s.nearest(uv, mode)),
+                            "{name} {uv} {mode:?}"
+                        );
+                    }
+                }
+            }
+        }
+        // Not 8-bit: f32, as before.
+        let path = dir.join("deep.png");
+        let deep: Vec<u8> = rgb.iter().flat_map(|&c| [c, c ^ 0x5a]).collect();
+        image::save_buffer(&path, &deep, w, h, C::Rgb16).unwrap();
+        let kept = Image::load_keeping_bytes_above(&path, false, MAX_TEXELS, 0).unwrap();
+        assert!(matches!(kept, Image::F32(_)) && kept.texel_bytes() == 12);
+        assert_eq!(kept.to_f32().texels, Bitmap::load(&path, false).unwrap().texels);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A scene's 8-bit texture of more than [`KEEP_BYTES_ABOVE`] texels keeps its bytes
+    /// where it is looked up `nearest` or `bilinear` (and only there: the pyramid filters build
+    /// from f32), and looks up, through `to_uv` and each filter and wrap, the values of the
+    /// same texture kept as f32, bit for bit.
+    #[test]
+    fn a_large_8bit_texture_keeps_its_bytes_and_its_values() {
+        use crate::texture::{BitmapTexture, TexCoord, Texture};
+        let dir = std::env::temp_dir().join(format!("furnace-large-bytes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (w, h) = (2049u32, 2048u32);
+        assert!((w * h) as u64 > KEEP_BYTES_ABOVE && ((w - 1) * h) as u64 <= KEEP_BYTES_ABOVE);
+        let px: Vec<u8> = (0..w * h * 3).map(|k| (k.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
+        let png = dir.join("big.png");
+        image::save_buffer(&png, &px, w, h, image::ExtendedColorType::Rgb8).unwrap();
+        let f32s = Arc::new(Bitmap::load(&png, false).unwrap());
+        for (filter, wrap, kept) in [
+            ("nearest", "repeat", true),
+            ("bilinear", "mirror", true),
+            ("bilinear", "clamp", true),
+            ("trilinear", "repeat", false),
+            ("ewa", "repeat", false),
+        ] {
+            let xml = format!(
+                r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/><film type="hdrfilm">
+                <integer name="width" value="4"/><integer name="height" value="4"/></film></sensor>
+                <shape type="rectangle"><bsdf type="diffuse">
+                <texture type="bitmap" name="reflectance"><string name="filename" value="big.png"/>
+                <string name="filter_type" value="{filter}"/><string name="wrap_mode" value="{wrap}"/>
+                <transform name="to_uv"><scale x="3" y="-2"/><translate x="0.25"/></transform>
+                </texture></bsdf></shape></scene>"#
+            );
+            let scene = crate::scene::Scene::load_str(&xml, &dir.join("s.xml"), &[]).unwrap();
+            let tex = scene.bsdfs[0].textures()[0].clone();
+            assert_eq!(matches!(tex, Texture::Bytes(_)), kept, "{filter}");
+            let Texture::Bytes(b) = &tex else { continue };
+            let as_f32 = Texture::Bitmap(Arc::new(BitmapTexture {
+                bitmap: f32s.clone(),
+                filter: b.filter,
+                wrap: b.wrap,
+                to_uv: b.to_uv,
+                mip: None,
+            }));
+            for k in 0..5000u32 {
+                let uv = Vec2::new((k % 71) as f32 / 23.0 - 1.0, (k / 71) as f32 / 29.0 - 1.0);
+                let bits = |c: Rgb| c.to_array().map(f32::to_bits);
+                assert_eq!(
+                    bits(tex.eval(TexCoord::from(uv))),
+                    bits(as_f32.eval(TexCoord::from(uv))),
+                    "{filter} {uv}"
+                );
+            }
+            assert_eq!(tex.mean().to_array().map(f32::to_bits), f32s.mean().to_array().map(f32::to_bits));
+            let plan = scene.describe().to_string();
+            assert!(
+                plan.contains(&format!(
+                    "texture: bitmap 2049x2048 {filter} lookup, no footprint, 8-bit texels"
+                )),
+                "{plan}"
+            );
+        }
         std::fs::remove_dir_all(&dir).ok();
     }
 

@@ -13,7 +13,7 @@ use glam::Vec2;
 
 use crate::math::Rgb;
 
-pub use bitmap::{Bitmap, BitmapError, FilterType, WrapMode, MAX_TEXELS};
+pub use bitmap::{Bitmap, Bitmap8, BitmapError, FilterType, Image, WrapMode, KEEP_BYTES_ABOVE, MAX_TEXELS};
 pub use mipmap::MipMap;
 
 /// Where a texture is looked up: uv, and its derivatives along the screen's x and y (zero
@@ -35,6 +35,8 @@ impl From<Vec2> for TexCoord {
 pub enum Texture {
     Const(Rgb),
     Bitmap(Arc<BitmapTexture>),
+    /// A large 8-bit bitmap without a pyramid, kept as its bytes.
+    Bytes(Arc<BytesTexture>),
     Checkerboard(Arc<Checkerboard>),
 }
 
@@ -57,6 +59,16 @@ pub struct BitmapTexture {
     pub to_uv: [[f32; 3]; 2],
     /// The pyramid, built only for `trilinear` and `ewa`.
     pub mip: Option<MipMap>,
+}
+
+/// A bitmap of more than [`KEEP_BYTES_ABOVE`] 8-bit texels, looked up `nearest` or
+/// `bilinear`: [`BitmapTexture`]'s lookups on its bytes ([`Bitmap8`]), the same values.
+#[derive(Debug)]
+pub struct BytesTexture {
+    pub bitmap: Arc<Bitmap8>,
+    pub filter: FilterType,
+    pub wrap: WrapMode,
+    pub to_uv: [[f32; 3]; 2],
 }
 
 impl Texture {
@@ -95,6 +107,13 @@ impl Texture {
                     _ => b.bitmap.bilinear(uv, b.wrap),
                 }
             }
+            Texture::Bytes(b) => {
+                let uv = apply(&b.to_uv, tc.uv);
+                match b.filter {
+                    FilterType::Nearest => b.bitmap.nearest(uv, b.wrap),
+                    _ => b.bitmap.bilinear(uv, b.wrap),
+                }
+            }
         }
     }
 
@@ -118,6 +137,7 @@ impl Texture {
         match self {
             Texture::Const(c) => *c,
             Texture::Bitmap(b) => b.bitmap.mean(),
+            Texture::Bytes(b) => b.bitmap.mean(),
             Texture::Checkerboard(c) => (c.color0 + c.color1) * 0.5,
         }
     }
