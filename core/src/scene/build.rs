@@ -153,7 +153,7 @@ pub(crate) struct Builder<'d> {
     /// BSDFs being built, one inside another.
     bsdf_depth: usize,
     textures: HashMap<usize, Texture>,
-    bitmaps: HashMap<(std::path::PathBuf, bool, bool), Image>,
+    bitmaps: HashMap<(std::path::PathBuf, bool), Image>,
     bsdfs: Vec<Bsdf>,
     shapes: Vec<Shape>,
     lights: Vec<Light>,
@@ -299,12 +299,11 @@ impl Builder<'_> {
         )
     }
 
-    /// A texture's image, as [`Builder::bitmap`] loads it, but a large 8-bit file keeps its
-    /// bytes (3 a texel, not 12) where `keep_bytes`.
-    fn image(&mut self, path: &std::path::Path, raw: bool, keep_bytes: bool) -> Result<Arc<Image>, String> {
-        let above = if keep_bytes { crate::texture::KEEP_BYTES_ABOVE } else { u64::MAX };
-        let what = format!("texture raw={raw} bytes={keep_bytes}");
-        let read = |max| Image::load_keeping_bytes_above(path, raw, max, above);
+    /// A texture's image, as [`Builder::bitmap`] loads it, but an 8-bit file of more than
+    /// [`crate::texture::KEEP_BYTES_ABOVE`] texels keeps its bytes (3 a texel, not 12).
+    fn image(&mut self, path: &std::path::Path, raw: bool) -> Result<Arc<Image>, String> {
+        let read = |max| Image::load_within(path, raw, max);
+        let what = format!("texture raw={raw}");
         self.decoded(path, &what, TEXEL_KEPT, read, |i| ((i.width() * i.height()) as u64, i.texel_bytes()))
     }
 
@@ -342,19 +341,13 @@ impl Builder<'_> {
         self.doc.err(pos, msg)
     }
 
-    /// A texture's image, read once however many textures use it (by path, `raw` and
-    /// `keep_bytes`).
-    pub(crate) fn shared_image(
-        &mut self,
-        path: &std::path::Path,
-        raw: bool,
-        keep_bytes: bool,
-    ) -> Result<Image, String> {
-        let key = (path.to_path_buf(), raw, keep_bytes);
+    /// A texture's image, read once however many textures use it (by path and `raw`).
+    pub(crate) fn shared_image(&mut self, path: &std::path::Path, raw: bool) -> Result<Image, String> {
+        let key = (path.to_path_buf(), raw);
         if let Some(b) = self.bitmaps.get(&key) {
             return Ok(b.clone());
         }
-        let b = (*self.image(path, raw, keep_bytes)?).clone();
+        let b = (*self.image(path, raw)?).clone();
         self.assets.push(path.to_path_buf());
         self.bitmaps.insert(key, b.clone());
         Ok(b)

@@ -516,15 +516,23 @@ pub(crate) fn from_scene(
     )?;
     let to_uv = super::to_uv_rows(&doc.transform(i, "to_uv")?.unwrap_or(glam::Mat4::IDENTITY));
     let mip = matches!(filter, FilterType::Trilinear | FilterType::Ewa);
-    // A large 8-bit image keeps its bytes where no pyramid is built from it.
-    let image = b
-        .shared_image(&path, raw, !mip)
-        .map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?;
-    let bitmap = match image {
-        Image::Bytes(bitmap) => {
+    let image =
+        b.shared_image(&path, raw).map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?;
+    let bitmap = match (image, mip) {
+        (Image::F32(bitmap), _) => bitmap,
+        // A large 8-bit image's bytes, looked up as they are.
+        (Image::Bytes(bitmap), false) => {
             return Ok(super::Texture::Bytes(Arc::new(super::BytesTexture { bitmap, filter, wrap, to_uv })))
         }
-        Image::F32(bitmap) => bitmap,
+        // The pyramid filters read f32 texels: this texture's own copy (the bytes stay shared
+        // with the file's other textures, and are dropped after loading if none keeps them).
+        (Image::Bytes(bytes), true) => {
+            let cost = (bytes.width * bytes.height * std::mem::size_of::<Rgb>()) as u64;
+            b.budget
+                .charge(&format!("the texels of texture '{rel}'"), cost, cost)
+                .map_err(|e| b.err(fpos, e))?;
+            Arc::new(bytes.to_f32())
+        }
     };
     if mip {
         let texels = (bitmap.width * bitmap.height) as u64;
@@ -692,8 +700,8 @@ mod load_tests {
 
     /// An 8-bit image kept as its bytes reads, through its table, the texels that the f32
     /// decode of the same file holds, bit for bit: every texel, nearest and bilinear lookups
-    /// (each wrap mode, points near and far), and the mean; sRGB-decoded and raw; RGB, RGBA and
-    /// grey PNGs and a JPEG. A 16-bit PNG stays f32.
+    /// (each wrap mode, points near and far), and the mean; sRGB-decoded and raw; RGB, RGBA,
+    /// grey and grey-alpha PNGs and a JPEG. A 16-bit PNG stays f32.
     #[test]
     fn bytes_kept_read_the_f32_texels_bit_for_bit() {
         let dir = std::env::temp_dir().join(format!("furnace-bytes-{}", std::process::id()));
@@ -709,11 +717,13 @@ mod load_tests {
         let bytes: Vec<u8> = (0..w * h * 4).map(|_| next() as u8).collect();
         let rgb: Vec<u8> = bytes.chunks(4).flat_map(|c| [c[0], c[1], c[2]]).collect();
         let grey: Vec<u8> = bytes.iter().step_by(4).copied().collect();
+        let grey_alpha: Vec<u8> = bytes.chunks(4).flat_map(|c| [c[0], c[3]]).collect();
         use image::ExtendedColorType as C;
         let files = [
             ("rgb.png", &rgb[..], C::Rgb8),
             ("rgba.png", &bytes[..], C::Rgba8),
             ("grey.png", &grey[..], C::L8),
+            ("grey-alpha.png", &grey_alpha[..], C::La8),
             ("rgb.jpg", &rgb[..], C::Rgb8),
         ];
         for (name, data, color) in files {
@@ -770,6 +780,59 @@ mod load_tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 
+    /// An RGB PNG of `w` x `h` texels of hashed bytes.
+    fn noise_png(path: &Path, w: u32, h: u32) {
+        let px: Vec<u8> = (0..w * h * 3).map(|k| (k.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
+        image::save_buffer(path, &px, w, h, image::ExtendedColorType::Rgb8).unwrap();
+    }
+
+    /// One file read by textures of several filters is read once: a small image's f32 texels
+    /// are one allocation for all of them; a large 8-bit image's bytes serve its nearest and
+    /// bilinear textures, and a pyramid filter gets f32 texels made from them. An image of
+    /// exactly [`KEEP_BYTES_ABOVE`] texels stays f32.
+    #[test]
+    fn an_image_used_by_several_filters_is_read_once() {
+        use crate::texture::Texture;
+        let dir = std::env::temp_dir().join(format!("furnace-shared-image-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        noise_png(&dir.join("small.png"), 37, 23);
+        noise_png(&dir.join("edge.png"), 2048, 2048);
+        noise_png(&dir.join("big.png"), 2049, 2048);
+        assert_eq!(2048 * 2048, KEEP_BYTES_ABOVE);
+        for (file, large) in [("small.png", false), ("edge.png", false), ("big.png", true)] {
+            let shape = |filter: &str| {
+                format!(
+                    r#"<shape type="sphere"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">
+                    <string name="filename" value="{file}"/><string name="filter_type" value="{filter}"/>
+                    </texture></bsdf></shape>"#
+                )
+            };
+            let xml = format!(
+                r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
+                <film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/></film>
+                </sensor>{}{}{}</scene>"#,
+                shape("bilinear"),
+                shape("nearest"),
+                shape("ewa")
+            );
+            let scene = crate::scene::Scene::load_str(&xml, &dir.join("s.xml"), &[]).unwrap();
+            assert_eq!(scene.assets.iter().filter(|p| p.ends_with(file)).count(), 1, "{file}");
+            let tex: Vec<Texture> = scene.bsdfs.iter().map(|b| b.textures()[0].clone()).collect();
+            match (&tex[0], &tex[1], &tex[2], large) {
+                (Texture::Bitmap(a), Texture::Bitmap(b), Texture::Bitmap(c), false) => {
+                    assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && Arc::ptr_eq(&a.bitmap, &c.bitmap), "{file}");
+                    assert!(c.mip.is_some());
+                }
+                (Texture::Bytes(a), Texture::Bytes(b), Texture::Bitmap(c), true) => {
+                    assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && c.mip.is_some());
+                    assert_eq!(c.bitmap.texels, a.bitmap.to_f32().texels);
+                }
+                _ => panic!("{file}: {tex:?}"),
+            }
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
     /// A scene's 8-bit texture of more than [`KEEP_BYTES_ABOVE`] texels keeps its bytes
     /// where it is looked up `nearest` or `bilinear` (and only there: the pyramid filters build
     /// from f32), and looks up, through `to_uv` and each filter and wrap, the values of the
@@ -779,11 +842,8 @@ mod load_tests {
         use crate::texture::{BitmapTexture, TexCoord, Texture};
         let dir = std::env::temp_dir().join(format!("furnace-large-bytes-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let (w, h) = (2049u32, 2048u32);
-        assert!((w * h) as u64 > KEEP_BYTES_ABOVE && ((w - 1) * h) as u64 <= KEEP_BYTES_ABOVE);
-        let px: Vec<u8> = (0..w * h * 3).map(|k| (k.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
         let png = dir.join("big.png");
-        image::save_buffer(&png, &px, w, h, image::ExtendedColorType::Rgb8).unwrap();
+        noise_png(&png, 2049, 2048);
         let f32s = Arc::new(Bitmap::load(&png, false).unwrap());
         for (filter, wrap, kept) in [
             ("nearest", "repeat", true),
