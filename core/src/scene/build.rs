@@ -154,6 +154,8 @@ pub(crate) struct Builder<'d> {
     bsdf_depth: usize,
     textures: HashMap<usize, Texture>,
     bitmaps: HashMap<(std::path::PathBuf, bool), Image>,
+    /// f32 texels made from a large 8-bit image's bytes for its pyramid textures, once a file.
+    f32_of_bytes: HashMap<(std::path::PathBuf, bool), Arc<Bitmap>>,
     bsdfs: Vec<Bsdf>,
     shapes: Vec<Shape>,
     lights: Vec<Light>,
@@ -196,6 +198,7 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         bsdf_depth: 0,
         textures: HashMap::new(),
         bitmaps: HashMap::new(),
+        f32_of_bytes: HashMap::new(),
         bsdfs: Vec::new(),
         shapes: Vec::new(),
         lights: Vec::new(),
@@ -350,6 +353,29 @@ impl Builder<'_> {
         let b = (*self.image(path, raw)?).clone();
         self.assets.push(path.to_path_buf());
         self.bitmaps.insert(key, b.clone());
+        Ok(b)
+    }
+
+    /// The f32 texels of a texture's image (`shared_image`): its own, or made from its bytes
+    /// (and charged) once however many pyramid textures read them.
+    pub(crate) fn shared_f32(
+        &mut self,
+        path: &std::path::Path,
+        raw: bool,
+        image: Image,
+    ) -> Result<Arc<Bitmap>, String> {
+        let bytes = match image {
+            Image::F32(bitmap) => return Ok(bitmap),
+            Image::Bytes(bytes) => bytes,
+        };
+        let key = (path.to_path_buf(), raw);
+        if let Some(b) = self.f32_of_bytes.get(&key) {
+            return Ok(b.clone());
+        }
+        let cost = (bytes.width * bytes.height) as u64 * TEXEL_KEPT;
+        self.budget.charge("the f32 texels of an 8-bit image", cost, cost)?;
+        let b = Arc::new(bytes.to_f32());
+        self.f32_of_bytes.insert(key, b.clone());
         Ok(b)
     }
 

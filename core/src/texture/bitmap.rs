@@ -519,20 +519,14 @@ pub(crate) fn from_scene(
     let image =
         b.shared_image(&path, raw).map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?;
     let bitmap = match (image, mip) {
-        (Image::F32(bitmap), _) => bitmap,
         // A large 8-bit image's bytes, looked up as they are.
         (Image::Bytes(bitmap), false) => {
             return Ok(super::Texture::Bytes(Arc::new(super::BytesTexture { bitmap, filter, wrap, to_uv })))
         }
-        // The pyramid filters read f32 texels: this texture's own copy (the bytes stay shared
-        // with the file's other textures, and are dropped after loading if none keeps them).
-        (Image::Bytes(bytes), true) => {
-            let cost = (bytes.width * bytes.height * std::mem::size_of::<Rgb>()) as u64;
-            b.budget
-                .charge(&format!("the texels of texture '{rel}'"), cost, cost)
-                .map_err(|e| b.err(fpos, e))?;
-            Arc::new(bytes.to_f32())
-        }
+        // The pyramid filters read f32 texels (made from a large image's bytes once a file).
+        (image, _) => b
+            .shared_f32(&path, raw, image)
+            .map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?,
     };
     if mip {
         let texels = (bitmap.width * bitmap.height) as u64;
@@ -788,7 +782,7 @@ mod load_tests {
 
     /// One file read by textures of several filters is read once: a small image's f32 texels
     /// are one allocation for all of them; a large 8-bit image's bytes serve its nearest and
-    /// bilinear textures, and a pyramid filter gets f32 texels made from them. An image of
+    /// bilinear textures, and its pyramid textures share one copy of f32 texels made from them. An image of
     /// exactly [`KEEP_BYTES_ABOVE`] texels stays f32.
     #[test]
     fn an_image_used_by_several_filters_is_read_once() {
@@ -810,22 +804,25 @@ mod load_tests {
             let xml = format!(
                 r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
                 <film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/></film>
-                </sensor>{}{}{}</scene>"#,
+                </sensor>{}{}{}{}</scene>"#,
                 shape("bilinear"),
                 shape("nearest"),
-                shape("ewa")
+                shape("ewa"),
+                shape("trilinear")
             );
             let scene = crate::scene::Scene::load_str(&xml, &dir.join("s.xml"), &[]).unwrap();
             assert_eq!(scene.assets.iter().filter(|p| p.ends_with(file)).count(), 1, "{file}");
             let tex: Vec<Texture> = scene.bsdfs.iter().map(|b| b.textures()[0].clone()).collect();
-            match (&tex[0], &tex[1], &tex[2], large) {
-                (Texture::Bitmap(a), Texture::Bitmap(b), Texture::Bitmap(c), false) => {
+            match (&tex[0], &tex[1], &tex[2], &tex[3], large) {
+                (Texture::Bitmap(a), Texture::Bitmap(b), Texture::Bitmap(c), Texture::Bitmap(d), false) => {
                     assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && Arc::ptr_eq(&a.bitmap, &c.bitmap), "{file}");
-                    assert!(c.mip.is_some());
+                    assert!(Arc::ptr_eq(&c.bitmap, &d.bitmap) && c.mip.is_some() && d.mip.is_some());
                 }
-                (Texture::Bytes(a), Texture::Bytes(b), Texture::Bitmap(c), true) => {
-                    assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && c.mip.is_some());
-                    assert_eq!(c.bitmap.texels, a.bitmap.to_f32().texels);
+                // The pyramid textures share one f32 copy, the texels the f32 decode gives.
+                (Texture::Bytes(a), Texture::Bytes(b), Texture::Bitmap(c), Texture::Bitmap(d), true) => {
+                    assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && Arc::ptr_eq(&c.bitmap, &d.bitmap));
+                    assert!(c.mip.is_some() && d.mip.is_some());
+                    assert_eq!(c.bitmap.texels, Bitmap::load(&dir.join(file), false).unwrap().texels);
                 }
                 _ => panic!("{file}: {tex:?}"),
             }
