@@ -441,14 +441,6 @@ impl Image {
         }
     }
 
-    /// The linear f32 image (shared, or made from the bytes).
-    pub fn to_f32(&self) -> std::sync::Arc<Bitmap> {
-        match self {
-            Image::F32(b) => b.clone(),
-            Image::Bytes(b) => std::sync::Arc::new(b.to_f32()),
-        }
-    }
-
     fn into_f32(self) -> Bitmap {
         match self {
             Image::F32(b) => std::sync::Arc::unwrap_or_clone(b),
@@ -740,7 +732,7 @@ mod load_tests {
                         );
                     }
                 }
-                assert_eq!(kept.to_f32().texels, f32s.texels);
+                assert_eq!(b.to_f32().texels, f32s.texels);
                 assert_eq!(b.mean().to_array().map(f32::to_bits), f32s.mean().to_array().map(f32::to_bits));
                 for mode in [WrapMode::Repeat, WrapMode::Mirror, WrapMode::Clamp] {
                     for k in 0..2000 {
@@ -769,9 +761,19 @@ mod load_tests {
         let deep: Vec<u8> = rgb.iter().flat_map(|&c| [c, c ^ 0x5a]).collect();
         image::save_buffer(&path, &deep, w, h, C::Rgb16).unwrap();
         let kept = Image::load_keeping_bytes_above(&path, false, MAX_TEXELS, 0).unwrap();
-        assert!(matches!(kept, Image::F32(_)) && kept.texel_bytes() == 12);
-        assert_eq!(kept.to_f32().texels, Bitmap::load(&path, false).unwrap().texels);
+        assert_eq!(kept.texel_bytes(), 12);
+        let Image::F32(f) = &kept else { panic!("a 16-bit image kept as bytes") };
+        assert_eq!(f.texels, Bitmap::load(&path, false).unwrap().texels);
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A scene of `shapes` seen by a 4 x 4 perspective camera.
+    fn scene_of(shapes: &str) -> String {
+        format!(
+            r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
+            <film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/></film>
+            </sensor>{shapes}</scene>"#
+        )
     }
 
     /// An RGB PNG of `w` x `h` texels of hashed bytes.
@@ -801,15 +803,7 @@ mod load_tests {
                     </texture></bsdf></shape>"#
                 )
             };
-            let xml = format!(
-                r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
-                <film type="hdrfilm"><integer name="width" value="4"/><integer name="height" value="4"/></film>
-                </sensor>{}{}{}{}</scene>"#,
-                shape("bilinear"),
-                shape("nearest"),
-                shape("ewa"),
-                shape("trilinear")
-            );
+            let xml = scene_of(&["bilinear", "nearest", "ewa", "trilinear"].map(shape).concat());
             let scene = crate::scene::Scene::load_str(&xml, &dir.join("s.xml"), &[]).unwrap();
             assert_eq!(scene.assets.iter().filter(|p| p.ends_with(file)).count(), 1, "{file}");
             let tex: Vec<Texture> = scene.bsdfs.iter().map(|b| b.textures()[0].clone()).collect();
@@ -849,15 +843,13 @@ mod load_tests {
             ("trilinear", "repeat", false),
             ("ewa", "repeat", false),
         ] {
-            let xml = format!(
-                r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/><film type="hdrfilm">
-                <integer name="width" value="4"/><integer name="height" value="4"/></film></sensor>
-                <shape type="rectangle"><bsdf type="diffuse">
+            let xml = scene_of(&format!(
+                r#"<shape type="rectangle"><bsdf type="diffuse">
                 <texture type="bitmap" name="reflectance"><string name="filename" value="big.png"/>
                 <string name="filter_type" value="{filter}"/><string name="wrap_mode" value="{wrap}"/>
                 <transform name="to_uv"><scale x="3" y="-2"/><translate x="0.25"/></transform>
-                </texture></bsdf></shape></scene>"#
-            );
+                </texture></bsdf></shape>"#
+            ));
             let scene = crate::scene::Scene::load_str(&xml, &dir.join("s.xml"), &[]).unwrap();
             let tex = scene.bsdfs[0].textures()[0].clone();
             assert_eq!(matches!(tex, Texture::Bytes(_)), kept, "{filter}");
