@@ -46,6 +46,14 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static COUNTING: Counting = Counting;
 
+/// Held by each test: the counts are the whole process's, so one test's allocations must not
+/// land in another's peak.
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn alone() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 const HEAD: &str = r#"<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="40"/>
 <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>"#;
 
@@ -184,7 +192,29 @@ fn scenes(dir: &Path) -> Vec<(&'static str, PathBuf)> {
             ),
         ),
         ("3000 spheres", scene(dir, "spheres", &spheres, |_| {})),
+        ("8-bit RGB PNG kept as bytes", large_8bit(dir, "rgb8", "t.png", image::ExtendedColorType::Rgb8)),
+        ("8-bit RGBA PNG kept as bytes", large_8bit(dir, "rgba8", "t.png", image::ExtendedColorType::Rgba8)),
+        ("8-bit grey PNG kept as bytes", large_8bit(dir, "l8", "t.png", image::ExtendedColorType::L8)),
+        ("JPEG kept as bytes", large_8bit(dir, "jpeg", "t.jpg", image::ExtendedColorType::Rgb8)),
     ]
+}
+
+/// Texels of [`large_8bit`]'s images: past `KEEP_BYTES_ABOVE`, so kept as bytes.
+const LARGE: (u32, u32) = (2049, 2048);
+
+/// A scene of a bilinear texture on an 8-bit image of [`LARGE`] texels of type `color`, saved as
+/// `file` (PNG or JPEG by its name).
+fn large_8bit(dir: &Path, name: &str, file: &str, color: image::ExtendedColorType) -> PathBuf {
+    let body = format!(
+        r#"<shape type="sphere"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">
+        <string name="filename" value="{file}"/><string name="filter_type" value="bilinear"/></texture></bsdf></shape>"#
+    );
+    scene(dir, name, &body, |d| {
+        let (w, h) = LARGE;
+        let bytes = color.bits_per_pixel() as u32 / 8;
+        let px: Vec<u8> = (0..w * h * bytes).map(|k| (k % 251 ^ k / 7919) as u8).collect();
+        image::save_buffer(d.join(file), &px, w, h, color).unwrap();
+    })
 }
 
 /// The estimate bounds what each load allocates at its peak, by no more than 4 times (an
@@ -192,6 +222,7 @@ fn scenes(dir: &Path) -> Vec<(&'static str, PathBuf)> {
 /// with an error naming the setting, and a budget of it loads it.
 #[test]
 fn a_scenes_load_estimate_bounds_what_it_allocates_and_its_budget_holds() {
+    let _alone = alone();
     let dir = common::scratch("load-budget");
     for (what, path) in scenes(&dir) {
         let before = NOW.load(Relaxed);
@@ -225,10 +256,34 @@ fn a_scenes_load_estimate_bounds_what_it_allocates_and_its_budget_holds() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A large 8-bit texture keeps its bytes, and its load is charged what that takes: it loads in
+/// half of what decoding it to f32 would take, where a 16-bit image of the same size is
+/// refused with an error naming the setting.
+#[test]
+fn a_texture_that_keeps_its_bytes_loads_in_a_fraction_of_the_memory() {
+    let _alone = alone();
+    let dir = common::scratch("load-budget-bytes");
+    let (w, h) = LARGE;
+    let half = (w * h) as u64 * furnace_core::texture::TEXEL_LOAD / 2;
+    let within =
+        |path: &Path| Scene::load_with(path, &[], &LoadLimits { max_bytes: half, ..Default::default() });
+    for color in [image::ExtendedColorType::Rgb8, image::ExtendedColorType::Rgba8] {
+        let path = large_8bit(&dir, "kept", "t.png", color);
+        let scene = within(&path).unwrap_or_else(|e| panic!("{color:?}: {e}"));
+        assert!(scene.describe().to_string().contains("8-bit texels"), "{color:?}: not kept as bytes");
+    }
+    let path = large_8bit(&dir, "wide", "t.png", image::ExtendedColorType::Rgb16);
+    let e = within(&path).err().expect("a 16-bit image decoded to f32 in half of what that takes");
+    assert!(e.to_string().contains("a 2049 x 2048 image does not fit"), "{e}");
+    assert!(e.to_string().contains("--max-scene-memory-mb"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// A load past its deadline stops with an error; without its BVH a scene is the same scene,
 /// planned alike, with nothing to trace.
 #[test]
 fn a_load_keeps_to_its_deadline_and_may_skip_the_bvh() {
+    let _alone = alone();
     let path = common::scenes().join("small.xml");
     let late = LoadLimits { deadline: Some(std::time::Instant::now()), ..Default::default() };
     let e = Scene::load_with(&path, &[], &late).err().expect("a load past its deadline");

@@ -17,7 +17,7 @@ use crate::geometry::{Accel, Geometry, Instance, Shape};
 use crate::light::Light;
 use crate::math::Rgb;
 use crate::plan::Techniques;
-use crate::texture::{Bitmap, Image, Texture};
+use crate::texture::{Bitmap, Image, Texture, MAX_TEXELS, TEXEL_LOAD};
 
 pub(crate) type R<T> = Result<T, SceneError>;
 
@@ -43,7 +43,8 @@ pub fn check_film_size(width: u32, height: u32) -> Result<(), String> {
 
 // What a load holds, estimated before each part is read. Measured with a counting allocator
 // (docs/BENCHMARKS.md, "Scene loading: memory"): a 7.3 MB scene of 40,000 spheres peaks at 16
-// bytes per byte of XML; a 4096 x 4096 PNG at 27 bytes a texel; OBJ at 7.1 and curve files at
+// bytes per byte of XML; a 4096 x 4096 PNG decoded to f32 at 27 bytes a texel (`TEXEL_LOAD`;
+// one that keeps its bytes: `texture::bitmap::byte_texel_load`); OBJ at 7.1 and curve files at
 // 3.5 bytes per byte of file (PLY: see `ply_load_estimate`); the BVH's build at 344 bytes a
 // primitive, keeping 54 (triangles) or 16 (curve segments).
 /// What a load holds whatever the scene.
@@ -51,9 +52,6 @@ const BASE: u64 = 1 << 20;
 /// What the XML parser holds per byte of the scene file (the text, the tree, positions), and
 /// keeps while the scene is built.
 pub(crate) const XML_PER_BYTE: u64 = 20;
-/// What a texel costs while its image is read and decoded, besides the file: the decoder's
-/// buffer (up to 16 bytes for float RGBA), the float copy and the linear texels.
-const TEXEL_LOAD: u64 = 40;
 /// What a texel keeps: linear RGB, and the pyramid's levels when a filter reads them.
 const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
 pub(crate) const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
@@ -296,46 +294,44 @@ impl Builder<'_> {
         self.decoded(
             path,
             &format!("image raw={raw}"),
-            kept,
-            |max| Bitmap::load_within(path, raw, max),
-            |b| ((b.width * b.height) as u64, kept),
+            |room| Bitmap::load_within(path, raw, (room / TEXEL_LOAD.max(kept)).min(MAX_TEXELS)),
+            |b| ((b.width * b.height) as u64, TEXEL_LOAD, kept),
         )
     }
 
     /// A texture's image, as [`Builder::bitmap`] loads it, but an 8-bit file of more than
-    /// [`crate::texture::KEEP_BYTES_ABOVE`] texels keeps its bytes (3 a texel, not 12).
-    fn image(&mut self, path: &std::path::Path, raw: bool) -> Result<Arc<Image>, String> {
-        let read = |max| Image::load_within(path, raw, max);
+    /// [`crate::texture::KEEP_BYTES_ABOVE`] texels keeps its bytes (3 a texel, not 12), and
+    /// takes a fraction of [`TEXEL_LOAD`] to read (`Image::load_in`).
+    fn image(&mut self, path: &std::path::Path, raw: bool) -> Result<Arc<(Image, u64)>, String> {
+        let read = |room| Image::load_in(path, raw, room);
         let what = format!("texture raw={raw}");
-        self.decoded(path, &what, TEXEL_KEPT, read, |i| ((i.width() * i.height()) as u64, i.texel_bytes()))
+        self.decoded(path, &what, read, |(i, load)| ((i.width() * i.height()) as u64, *load, i.texel_bytes()))
     }
 
-    /// What `read` (given the most texels that fit) decodes from the image at `path`, charged
-    /// to the budget: [`TEXEL_LOAD`] bytes a texel while loading, what `size` says (texels,
-    /// bytes each) kept; `kept` is the estimate of the latter, before.
+    /// What `read` (given the bytes left for it besides the file) decodes from the image at
+    /// `path`, charged to the budget as `size` says: its texels, the bytes each held while it
+    /// was read, and the bytes each keeps.
     fn decoded<T: Send + Sync + 'static>(
         &mut self,
         path: &std::path::Path,
         what: &str,
-        kept: u64,
         read: impl FnOnce(u64) -> Result<T, crate::texture::BitmapError>,
-        size: impl Fn(&T) -> (u64, u64),
+        size: impl Fn(&T) -> (u64, u64, u64),
     ) -> Result<Arc<T>, String> {
         self.budget.in_time()?;
         let file = file_size(path);
         // The file is read whole: refused before it is, if it alone does not fit.
         self.budget.charge("an image file", file, 0)?;
         let room = self.budget.room().saturating_sub(file);
-        let fits = room / TEXEL_LOAD.max(kept);
-        let image = self.cached(path, what, || read(fits.min(crate::texture::MAX_TEXELS))).map_err(|e| match e {
-            crate::texture::BitmapError::TooLarge { width, height, .. } if fits < crate::texture::MAX_TEXELS => format!(
+        let image = self.cached(path, what, || read(room)).map_err(|e| match e {
+            crate::texture::BitmapError::TooLarge { width, height, limit } if limit < MAX_TEXELS => format!(
                 "a {width} x {height} image does not fit in what is left of the {:.1} MiB a scene may take to load (--max-scene-memory-mb)",
                 self.budget.limits.max_bytes as f64 / (1u64 << 20) as f64
             ),
             e => e.to_string(),
         })?;
-        let (texels, kept) = size(&image);
-        let load = file.saturating_add(texels.saturating_mul(TEXEL_LOAD));
+        let (texels, load, kept) = size(&image);
+        let load = file.saturating_add(texels.saturating_mul(load));
         self.budget.charge("an image", load, texels.saturating_mul(kept))?;
         Ok(image)
     }
@@ -350,7 +346,7 @@ impl Builder<'_> {
         if let Some(b) = self.bitmaps.get(&key) {
             return Ok(b.clone());
         }
-        let b = (*self.image(path, raw)?).clone();
+        let b = self.image(path, raw)?.0.clone();
         self.assets.push(path.to_path_buf());
         self.bitmaps.insert(key, b.clone());
         Ok(b)

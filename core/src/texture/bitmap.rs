@@ -134,7 +134,7 @@ impl Bitmap {
     /// Decodes an image held in memory (EXR when `exr`, else whatever format its bytes say),
     /// refusing one that declares more than `max_texels` before allocating it.
     pub fn decode(bytes: &[u8], exr: bool, raw: bool, max_texels: u64) -> Result<Bitmap, BitmapError> {
-        Ok(decode_image(bytes, exr, raw, max_texels, u64::MAX)?.into_f32())
+        Ok(decode_image(bytes, exr, raw, max_texels, u64::MAX, 0)?.0.into_f32())
     }
 
     fn decode_exr(bytes: &[u8]) -> Result<Bitmap, BitmapError> {
@@ -195,21 +195,35 @@ impl Bitmap {
 /// -12%, 2048 x 2048 -6%; 4096 x 4096 +12%).
 pub const KEEP_BYTES_ABOVE: u64 = 1 << 22;
 
+/// What a texel costs while its image is read and decoded to f32, besides the file: the
+/// decoder's buffer (up to 16 bytes for float RGBA), the float copy and the linear texels.
+pub const TEXEL_LOAD: u64 = 40;
+
+/// What a texel of an 8-bit image that keeps its bytes holds while it is read, besides the
+/// file: the decoder's `channels` bytes, the 3 kept (the same bytes, for RGB), and a JPEG's
+/// coefficients (2 bytes a sample, which a progressive one holds for the whole image); one
+/// byte of slack. Measured at 4096 x 4096: RGB PNG 2.95, RGBA 6.8, grey 3.8, baseline JPEG
+/// 3.2, progressive JPEG 9.0 (4:4:4) and 6.0 (4:2:0) bytes a texel (docs/BENCHMARKS.md).
+fn byte_texel_load(channels: u64, jpeg: bool) -> u64 {
+    channels + if channels == 3 { 0 } else { 3 } + if jpeg { 6 } else { 0 } + 1
+}
+
 /// [`Bitmap::decode`], keeping an 8-bit image of more than `bytes_above` texels as its bytes.
+/// Refused from its header: an image decoded to f32 of more than `max_texels` texels, one kept
+/// as bytes that would hold more than `bytes_room` bytes while it is read (or has more than
+/// [`MAX_TEXELS`]). With the image, the bytes a texel held while it was read (at most).
 fn decode_image(
     bytes: &[u8],
     exr: bool,
     raw: bool,
     max_texels: u64,
     bytes_above: u64,
-) -> Result<Image, BitmapError> {
-    let too_large = |width: u64, height: u64| {
-        (width.saturating_mul(height) > max_texels).then_some(BitmapError::TooLarge {
-            width,
-            height,
-            limit: max_texels,
-        })
+    bytes_room: u64,
+) -> Result<(Image, u64), BitmapError> {
+    let too_large_for = |width: u64, height: u64, limit: u64| {
+        (width.saturating_mul(height) > limit).then_some(BitmapError::TooLarge { width, height, limit })
     };
+    let too_large = |width: u64, height: u64| too_large_for(width, height, max_texels);
     let bmp = if exr {
         let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)?;
         // Every layer counts (the reader may decode them all to find the RGBA one).
@@ -223,22 +237,30 @@ fn decode_image(
         }
         Bitmap::decode_exr(bytes)?
     } else {
+        use image::ImageDecoder;
         let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
             .with_guessed_format()
             .map_err(image::ImageError::IoError)?;
-        reader.limits(limits_for(max_texels));
-        let (w, h) = reader.into_dimensions()?;
-        if let Some(e) = too_large(w as u64, h as u64) {
+        let jpeg = reader.format() == Some(image::ImageFormat::Jpeg);
+        // The header says the size and the texels' type; whether the image keeps its bytes,
+        // and so which limit holds, follows from those before anything is decoded (the
+        // decoder's limits are set to it then).
+        reader.limits(limits_for(MAX_TEXELS));
+        let mut decoder = reader.into_decoder()?;
+        let (w, h) = decoder.dimensions();
+        use image::ColorType::{La8, Rgb8, Rgba8, L8};
+        let color = [L8, La8, Rgb8, Rgba8].iter().position(|&c| c == decoder.color_type());
+        let keep_bytes = color.is_some() && w as u64 * h as u64 > bytes_above;
+        let load = match color {
+            Some(c) if keep_bytes => byte_texel_load(c as u64 + 1, jpeg),
+            _ => TEXEL_LOAD,
+        };
+        let limit = if keep_bytes { (bytes_room / load).min(MAX_TEXELS) } else { max_texels };
+        if let Some(e) = too_large_for(w as u64, h as u64, limit) {
             return Err(e);
         }
-        let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
-            .with_guessed_format()
-            .map_err(image::ImageError::IoError)?;
-        reader.limits(limits_for(max_texels));
-        let img = reader.decode()?;
-        use image::ColorType::{La8, Rgb8, Rgba8, L8};
-        let color = [L8, La8, Rgb8, Rgba8].iter().position(|&c| c == img.color());
-        let keep_bytes = img.width() as u64 * img.height() as u64 > bytes_above;
+        decoder.set_limits(limits_for(limit))?;
+        let img = image::DynamicImage::from_decoder(decoder)?;
         if let (true, Some(color)) = (keep_bytes, color) {
             let (width, height) = (img.width() as usize, img.height() as usize);
             if width == 0 || height == 0 {
@@ -246,7 +268,7 @@ fn decode_image(
             }
             let table = &BYTE_TABLES[color][!raw as usize];
             let bytes = img.into_rgb8().into_raw();
-            return Ok(Image::Bytes(std::sync::Arc::new(Bitmap8 { width, height, bytes, table })));
+            return Ok((Image::Bytes(std::sync::Arc::new(Bitmap8 { width, height, bytes, table })), load));
         }
         let is_float = matches!(img.color(), image::ColorType::Rgb32F | image::ColorType::Rgba32F);
         let rgb = img.to_rgb32f(); // normalises integers to [0, 1]; no linearisation
@@ -271,7 +293,7 @@ fn decode_image(
     if bad > 0 {
         return Err(BitmapError::NonFinite(bad));
     }
-    Ok(Image::F32(std::sync::Arc::new(bmp)))
+    Ok((Image::F32(std::sync::Arc::new(bmp)), TEXEL_LOAD))
 }
 
 /// The texel (index `y * width + x`) that a nearest lookup at `uv` reads.
@@ -402,21 +424,19 @@ impl Bitmap8 {
 
 impl Image {
     /// Loads as [`Bitmap::load`] does, but an 8-bit PNG or JPEG of more than
-    /// [`KEEP_BYTES_ABOVE`] texels keeps its bytes.
-    pub fn load_within(path: &Path, raw: bool, max_texels: u64) -> Result<Image, BitmapError> {
-        Image::load_keeping_bytes_above(path, raw, max_texels, KEEP_BYTES_ABOVE)
+    /// [`KEEP_BYTES_ABOVE`] texels keeps its bytes, within `room` bytes besides the file: an
+    /// image decoded to f32 at [`TEXEL_LOAD`] bytes a texel, one that keeps its bytes at what
+    /// its type holds while it is read (a fraction of that). With the image, those bytes a
+    /// texel.
+    pub fn load_in(path: &Path, raw: bool, room: u64) -> Result<(Image, u64), BitmapError> {
+        Image::read(path, raw, KEEP_BYTES_ABOVE, room)
     }
 
-    /// [`Image::load_within`], keeping the bytes of an 8-bit image of more than `above` texels.
-    pub fn load_keeping_bytes_above(
-        path: &Path,
-        raw: bool,
-        max_texels: u64,
-        above: u64,
-    ) -> Result<Image, BitmapError> {
+    /// [`Image::load_in`], keeping the bytes of an 8-bit image of more than `above` texels.
+    fn read(path: &Path, raw: bool, above: u64, room: u64) -> Result<(Image, u64), BitmapError> {
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
         let bytes = std::fs::read(path).map_err(image::ImageError::IoError)?;
-        decode_image(&bytes, ext == "exr", raw, max_texels, above)
+        decode_image(&bytes, ext == "exr", raw, (room / TEXEL_LOAD).min(MAX_TEXELS), above, room)
     }
 
     pub fn width(&self) -> usize {
@@ -718,8 +738,8 @@ mod load_tests {
             for raw in [false, true] {
                 let f32s = Bitmap::load(&path, raw).unwrap();
                 // Small: f32, unless bytes are asked for whatever the size.
-                assert!(matches!(Image::load_within(&path, raw, MAX_TEXELS).unwrap(), Image::F32(_)));
-                let kept = Image::load_keeping_bytes_above(&path, raw, MAX_TEXELS, 0).unwrap();
+                assert!(matches!(Image::load_in(&path, raw, u64::MAX).unwrap().0, Image::F32(_)));
+                let kept = Image::read(&path, raw, 0, u64::MAX).unwrap().0;
                 let Image::Bytes(b) = &kept else { panic!("{name}: not kept as bytes") };
                 assert_eq!((b.width, b.height, kept.texel_bytes()), (w as usize, h as usize, 3));
                 for y in 0..h as usize {
@@ -760,7 +780,7 @@ mod load_tests {
         let path = dir.join("deep.png");
         let deep: Vec<u8> = rgb.iter().flat_map(|&c| [c, c ^ 0x5a]).collect();
         image::save_buffer(&path, &deep, w, h, C::Rgb16).unwrap();
-        let kept = Image::load_keeping_bytes_above(&path, false, MAX_TEXELS, 0).unwrap();
+        let kept = Image::read(&path, false, 0, u64::MAX).unwrap().0;
         assert_eq!(kept.texel_bytes(), 12);
         let Image::F32(f) = &kept else { panic!("a 16-bit image kept as bytes") };
         assert_eq!(f.texels, Bitmap::load(&path, false).unwrap().texels);

@@ -13,7 +13,9 @@ use glam::Vec2;
 
 use crate::math::Rgb;
 
-pub use bitmap::{Bitmap, Bitmap8, BitmapError, FilterType, Image, WrapMode, KEEP_BYTES_ABOVE, MAX_TEXELS};
+pub use bitmap::{
+    Bitmap, Bitmap8, BitmapError, FilterType, Image, WrapMode, KEEP_BYTES_ABOVE, MAX_TEXELS, TEXEL_LOAD,
+};
 pub use mipmap::MipMap;
 
 /// Where a texture is looked up: uv, and its derivatives along the screen's x and y (zero
