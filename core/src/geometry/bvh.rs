@@ -1587,6 +1587,8 @@ impl Accel {
     /// (it has no hit to give the ray).
     #[inline]
     pub fn closest(&self, shapes: &[Shape], ray: &Ray, from: SpawnedFrom) -> Option<Hit> {
+        #[cfg(feature = "ray-log")]
+        ray_log::note(ray, from, false);
         let mut q = Query::from(shapes, ray, from);
         let (t, k, aux) = self.query_with(&mut q, false)?;
         Some(Hit { t, k, aux, inner: q.inner.get(), leaf: q.leaf })
@@ -1599,6 +1601,8 @@ impl Accel {
 
     /// [`Accel::occluded`] for a ray spawned from `from` ([`Accel::spawned_from`]).
     pub fn occluded_from(&self, shapes: &[Shape], ray: &Ray, from: SpawnedFrom) -> bool {
+        #[cfg(feature = "ray-log")]
+        ray_log::note(ray, from, true);
         self.query_with(&mut Query::from(shapes, ray, from), true).is_some()
     }
 
@@ -1946,6 +1950,37 @@ impl Accel {
     }
 }
 
+/// The rays traced through [`Accel::closest`] and [`Accel::occluded_from`] while logging is
+/// on, to be traced again alone (`core/benches/traversal_share.rs`: how much of a render's
+/// time its traversals take). Built only with the `ray-log` feature.
+#[cfg(feature = "ray-log")]
+pub mod ray_log {
+    use super::{Ray, SpawnedFrom};
+    use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+    use std::sync::Mutex;
+
+    /// A logged query: the ray, what it leaves, and whether it was a shadow ray's.
+    pub type Query = (Ray, SpawnedFrom, bool);
+
+    static ON: AtomicBool = AtomicBool::new(false);
+    static LOG: Mutex<Vec<Query>> = Mutex::new(Vec::new());
+
+    pub(super) fn note(ray: &Ray, from: SpawnedFrom, any: bool) {
+        if ON.load(Relaxed) {
+            LOG.lock().unwrap_or_else(|e| e.into_inner()).push((*ray, from, any));
+        }
+    }
+
+    /// The queries traced while `f` runs (on any thread).
+    pub fn during(f: impl FnOnce()) -> Vec<Query> {
+        LOG.lock().unwrap_or_else(|e| e.into_inner()).clear();
+        ON.store(true, Relaxed);
+        f();
+        ON.store(false, Relaxed);
+        std::mem::take(&mut *LOG.lock().unwrap_or_else(|e| e.into_inner()))
+    }
+}
+
 /// What a ray spawned from a surface leaves behind, which its traversal passes over: the
 /// fibre piece ([`Leaving`]) and a leaf that it cannot meet again ([`Accel::spawned_from`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -1980,6 +2015,13 @@ pub struct Hit {
     inner: (u32, Vec2, f32),
     /// The leaf that holds primitive `k` (for [`Accel::spawned_from`]).
     leaf: u32,
+}
+
+impl Hit {
+    /// The distance along the ray.
+    pub fn distance(&self) -> f32 {
+        self.t
+    }
 }
 
 impl Accel {
