@@ -32,7 +32,10 @@ fn main() {
     let mut scenes: Vec<(String, u64)> = args
         .iter()
         .skip(1)
-        .filter_map(|a| a.rsplit_once(':').and_then(|(s, n)| Some((s.to_string(), n.parse().ok()?))))
+        // (Relative to the repository: cargo runs benches in the package's folder.)
+        .filter_map(|a| {
+            a.rsplit_once(':').and_then(|(s, n)| Some((root.join(s).display().to_string(), n.parse().ok()?)))
+        })
         .collect();
     if scenes.is_empty() {
         for (s, spp) in [("cbox", 16), ("textured", 64), ("envmap", 64), ("thinlens", 32), ("hair", 8)] {
