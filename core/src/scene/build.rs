@@ -17,7 +17,7 @@ use crate::geometry::{Accel, Geometry, Instance, Shape};
 use crate::light::Light;
 use crate::math::Rgb;
 use crate::plan::Techniques;
-use crate::texture::{Bitmap, Image, Texture, MAX_TEXELS, TEXEL_LOAD};
+use crate::texture::{Bitmap, Image, Texture, MAX_TEXELS};
 
 pub(crate) type R<T> = Result<T, SceneError>;
 
@@ -282,7 +282,7 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
 
 impl Builder<'_> {
     /// Loads an image within the budget: refused from its header when its texels (at
-    /// [`TEXEL_LOAD`] bytes each while decoding) do not fit; each then keeps
+    /// [`crate::texture::TEXEL_LOAD`] bytes each while decoding) do not fit; each then keeps
     /// [`TEXEL_KEPT`] bytes, and `extra` more.
     pub(crate) fn bitmap(
         &mut self,
@@ -294,29 +294,32 @@ impl Builder<'_> {
         self.decoded(
             path,
             &format!("image raw={raw}"),
-            |room| Bitmap::load_within(path, raw, (room / TEXEL_LOAD.max(kept)).min(MAX_TEXELS)),
-            |b| ((b.width * b.height) as u64, TEXEL_LOAD, kept),
+            |room| Bitmap::load_in(path, raw, room, kept).map(|(b, held)| (Arc::new(b), held)),
+            |(b, held)| (*held, (b.width * b.height) as u64 * kept),
         )
+        .map(|b| b.0.clone())
     }
 
     /// A texture's image, as [`Builder::bitmap`] loads it, but an 8-bit file of more than
     /// [`crate::texture::KEEP_BYTES_ABOVE`] texels keeps its bytes (3 a texel, not 12), and
-    /// takes a fraction of [`TEXEL_LOAD`] to read (`Image::load_in`).
+    /// takes a fraction of [`crate::texture::TEXEL_LOAD`] to read (`Image::load_in`).
     fn image(&mut self, path: &std::path::Path, raw: bool) -> Result<Arc<(Image, u64)>, String> {
         let read = |room| Image::load_in(path, raw, room);
         let what = format!("texture raw={raw}");
-        self.decoded(path, &what, read, |(i, load)| ((i.width() * i.height()) as u64, *load, i.texel_bytes()))
+        self.decoded(path, &what, read, |(i, held)| {
+            (*held, (i.width() * i.height()) as u64 * i.texel_bytes())
+        })
     }
 
     /// What `read` (given the bytes left for it besides the file) decodes from the image at
-    /// `path`, charged to the budget as `size` says: its texels, the bytes each held while it
-    /// was read, and the bytes each keeps.
+    /// `path`, charged to the budget as `size` says: the bytes its reading held besides the
+    /// file, and the bytes it keeps.
     fn decoded<T: Send + Sync + 'static>(
         &mut self,
         path: &std::path::Path,
         what: &str,
         read: impl FnOnce(u64) -> Result<T, crate::texture::BitmapError>,
-        size: impl Fn(&T) -> (u64, u64, u64),
+        size: impl Fn(&T) -> (u64, u64),
     ) -> Result<Arc<T>, String> {
         self.budget.in_time()?;
         let file = file_size(path);
@@ -330,9 +333,8 @@ impl Builder<'_> {
             ),
             e => e.to_string(),
         })?;
-        let (texels, load, kept) = size(&image);
-        let load = file.saturating_add(texels.saturating_mul(load));
-        self.budget.charge("an image", load, texels.saturating_mul(kept))?;
+        let (held, kept) = size(&image);
+        self.budget.charge("an image", file.saturating_add(held), kept)?;
         Ok(image)
     }
 

@@ -103,12 +103,17 @@ pub enum BitmapError {
 /// The most texels one image may have (a 16k x 8k environment map; 1.6 GB of linear RGB).
 pub const MAX_TEXELS: u64 = 1 << 27;
 
-/// Decoder limits for an image of at most `max_texels` texels (RGBA, 32-bit float at most).
-fn limits_for(max_texels: u64) -> image::Limits {
+/// Decoder limits: what the decoder may allocate itself (the image crate allocates the
+/// decoded image outside them).
+fn limits_of(max_alloc: u64) -> image::Limits {
     let mut limits = image::Limits::default();
-    limits.max_alloc = Some(max_texels.saturating_mul(16));
+    limits.max_alloc = Some(max_alloc);
     limits
 }
+
+/// What the PNG decoder may allocate itself, and is charged for: its chunks' metadata (a
+/// compressed colour profile inflates to whatever it declares) and a line buffer.
+const PNG_DECODER_BYTES: u64 = 8 << 20;
 
 /// Linear RGB texels, row 0 at the top.
 #[derive(Clone, Debug)]
@@ -121,20 +126,24 @@ pub struct Bitmap {
 impl Bitmap {
     /// Loads PNG, JPEG, HDR or EXR. Integer formats are sRGB-decoded unless `raw`.
     pub fn load(path: &Path, raw: bool) -> Result<Bitmap, BitmapError> {
-        Bitmap::load_within(path, raw, MAX_TEXELS)
+        Ok(Bitmap::load_in(path, raw, u64::MAX, TEXEL_LOAD)?.0)
     }
 
-    /// [`Bitmap::load`] of an image of at most `max_texels` texels (refused from its header).
-    pub fn load_within(path: &Path, raw: bool, max_texels: u64) -> Result<Bitmap, BitmapError> {
+    /// [`Bitmap::load`] within `room` bytes besides the file, at `per_texel` bytes a texel
+    /// (at least [`TEXEL_LOAD`]): refused from its header where it would not fit. With the
+    /// image, the bytes its reading held besides the file (at most).
+    pub fn load_in(path: &Path, raw: bool, room: u64, per_texel: u64) -> Result<(Bitmap, u64), BitmapError> {
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
         let bytes = std::fs::read(path).map_err(image::ImageError::IoError)?;
-        Self::decode(&bytes, ext == "exr", raw, max_texels)
+        let (image, held) =
+            decode_image(&bytes, ext == "exr", raw, MAX_TEXELS, room, per_texel.max(TEXEL_LOAD), u64::MAX)?;
+        Ok((image.into_f32(), held))
     }
 
     /// Decodes an image held in memory (EXR when `exr`, else whatever format its bytes say),
     /// refusing one that declares more than `max_texels` before allocating it.
     pub fn decode(bytes: &[u8], exr: bool, raw: bool, max_texels: u64) -> Result<Bitmap, BitmapError> {
-        Ok(decode_image(bytes, exr, raw, max_texels, u64::MAX, 0)?.0.into_f32())
+        Ok(decode_image(bytes, exr, raw, max_texels, u64::MAX, TEXEL_LOAD, u64::MAX)?.0.into_f32())
     }
 
     fn decode_exr(bytes: &[u8]) -> Result<Bitmap, BitmapError> {
@@ -199,31 +208,39 @@ pub const KEEP_BYTES_ABOVE: u64 = 1 << 22;
 /// decoder's buffer (up to 16 bytes for float RGBA), the float copy and the linear texels.
 pub const TEXEL_LOAD: u64 = 40;
 
-/// What a texel of an 8-bit image that keeps its bytes holds while it is read, besides the
-/// file: the decoder's `channels` bytes, the 3 kept (the same bytes, for RGB), and a JPEG's
-/// coefficients (2 bytes a sample, which a progressive one holds for the whole image); one
-/// byte of slack. Measured at 4096 x 4096: RGB PNG 2.95, RGBA 6.8, grey 3.8, baseline JPEG
-/// 3.2, progressive JPEG 9.0 (4:4:4) and 6.0 (4:2:0) bytes a texel (docs/BENCHMARKS.md).
-fn byte_texel_load(channels: u64, jpeg: bool) -> u64 {
-    channels + if channels == 3 { 0 } else { 3 } + if jpeg { 6 } else { 0 } + 1
+/// What a texel of an 8-bit PNG that keeps its bytes holds while it is read, besides the
+/// file: the decoder's `channels` bytes, and the 3 kept (the same bytes, for RGB); one byte of
+/// slack. Measured at 4096 x 4096: RGB 2.95, RGBA 6.8, grey 3.8 bytes a texel; interlaced
+/// the same (docs/BENCHMARKS.md, "Scene loading: memory"). A JPEG keeps its bytes too, but is
+/// charged [`TEXEL_LOAD`]: what its decoder holds depends on what the header alone does not
+/// bound simply (progressive scans, four components, sampling factors; up to 21 bytes a texel
+/// were measured).
+fn byte_texel_load(channels: u64) -> u64 {
+    channels + if channels == 3 { 0 } else { 3 } + 1
 }
 
 /// [`Bitmap::decode`], keeping an 8-bit image of more than `bytes_above` texels as its bytes.
-/// Refused from its header: an image decoded to f32 of more than `max_texels` texels, one kept
-/// as bytes that would hold more than `bytes_room` bytes while it is read (or has more than
-/// [`MAX_TEXELS`]). With the image, the bytes a texel held while it was read (at most).
+/// Refused from its header where it has more than `max_texels` texels or would hold more than
+/// `room` bytes while it is read (besides the file): `per_texel` a texel decoded to f32,
+/// [`byte_texel_load`] a texel of a PNG kept as bytes, and what its decoder holds whatever its
+/// size (a PNG's [`PNG_DECODER_BYTES`], a JPEG's copy of the file). With the image, the bytes
+/// its reading held besides the file (at most).
 fn decode_image(
     bytes: &[u8],
     exr: bool,
     raw: bool,
     max_texels: u64,
+    room: u64,
+    per_texel: u64,
     bytes_above: u64,
-    bytes_room: u64,
 ) -> Result<(Image, u64), BitmapError> {
     let too_large_for = |width: u64, height: u64, limit: u64| {
         (width.saturating_mul(height) > limit).then_some(BitmapError::TooLarge { width, height, limit })
     };
-    let too_large = |width: u64, height: u64| too_large_for(width, height, max_texels);
+    let fits = |room: u64, per_texel: u64| (room / per_texel).min(max_texels);
+    let too_large = |width: u64, height: u64| too_large_for(width, height, fits(room, per_texel));
+    // What reading the image holds besides the file (set below, once known).
+    let mut held = 0;
     let bmp = if exr {
         let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)?;
         // Every layer counts (the reader may decode them all to find the RGBA one).
@@ -241,25 +258,40 @@ fn decode_image(
         let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
             .with_guessed_format()
             .map_err(image::ImageError::IoError)?;
-        let jpeg = reader.format() == Some(image::ImageFormat::Jpeg);
-        // The header says the size and the texels' type; whether the image keeps its bytes,
-        // and so which limit holds, follows from those before anything is decoded (the
-        // decoder's limits are set to it then).
-        reader.limits(limits_for(MAX_TEXELS));
-        let mut decoder = reader.into_decoder()?;
+        // What the decoder holds whatever the image's size: a PNG decoder's own allocations
+        // (capped at what is charged for them), a JPEG decoder's copy of the file.
+        let (png, jpeg) = (
+            reader.format() == Some(image::ImageFormat::Png),
+            reader.format() == Some(image::ImageFormat::Jpeg),
+        );
+        let fixed = if png {
+            PNG_DECODER_BYTES
+        } else if jpeg {
+            bytes.len() as u64
+        } else {
+            0
+        };
+        let room = room.saturating_sub(fixed);
+        reader.limits(limits_of(if png {
+            PNG_DECODER_BYTES
+        } else {
+            fits(room, per_texel).saturating_mul(16)
+        }));
+        // The header says the size and the texels' type, and so whether the image keeps its
+        // bytes and what reading it holds, before anything is decoded.
+        let decoder = reader.into_decoder()?;
         let (w, h) = decoder.dimensions();
         use image::ColorType::{La8, Rgb8, Rgba8, L8};
         let color = [L8, La8, Rgb8, Rgba8].iter().position(|&c| c == decoder.color_type());
         let keep_bytes = color.is_some() && w as u64 * h as u64 > bytes_above;
         let load = match color {
-            Some(c) if keep_bytes => byte_texel_load(c as u64 + 1, jpeg),
-            _ => TEXEL_LOAD,
+            Some(c) if keep_bytes && !jpeg => byte_texel_load(c as u64 + 1),
+            _ => per_texel,
         };
-        let limit = if keep_bytes { (bytes_room / load).min(MAX_TEXELS) } else { max_texels };
-        if let Some(e) = too_large_for(w as u64, h as u64, limit) {
+        if let Some(e) = too_large_for(w as u64, h as u64, fits(room, load)) {
             return Err(e);
         }
-        decoder.set_limits(limits_for(limit))?;
+        held = fixed + w as u64 * h as u64 * load;
         let img = image::DynamicImage::from_decoder(decoder)?;
         if let (true, Some(color)) = (keep_bytes, color) {
             let (width, height) = (img.width() as usize, img.height() as usize);
@@ -268,7 +300,7 @@ fn decode_image(
             }
             let table = &BYTE_TABLES[color][!raw as usize];
             let bytes = img.into_rgb8().into_raw();
-            return Ok((Image::Bytes(std::sync::Arc::new(Bitmap8 { width, height, bytes, table })), load));
+            return Ok((Image::Bytes(std::sync::Arc::new(Bitmap8 { width, height, bytes, table })), held));
         }
         let is_float = matches!(img.color(), image::ColorType::Rgb32F | image::ColorType::Rgba32F);
         let rgb = img.to_rgb32f(); // normalises integers to [0, 1]; no linearisation
@@ -293,7 +325,10 @@ fn decode_image(
     if bad > 0 {
         return Err(BitmapError::NonFinite(bad));
     }
-    Ok((Image::F32(std::sync::Arc::new(bmp)), TEXEL_LOAD))
+    if exr {
+        held = (bmp.width * bmp.height) as u64 * per_texel;
+    }
+    Ok((Image::F32(std::sync::Arc::new(bmp)), held))
 }
 
 /// The texel (index `y * width + x`) that a nearest lookup at `uv` reads.
@@ -423,11 +458,10 @@ impl Bitmap8 {
 }
 
 impl Image {
-    /// Loads as [`Bitmap::load`] does, but an 8-bit PNG or JPEG of more than
-    /// [`KEEP_BYTES_ABOVE`] texels keeps its bytes, within `room` bytes besides the file: an
-    /// image decoded to f32 at [`TEXEL_LOAD`] bytes a texel, one that keeps its bytes at what
-    /// its type holds while it is read (a fraction of that). With the image, those bytes a
-    /// texel.
+    /// Loads as [`Bitmap::load_in`] does (at [`TEXEL_LOAD`] a texel), but an 8-bit PNG or
+    /// JPEG of more than [`KEEP_BYTES_ABOVE`] texels keeps its bytes (and a PNG's reading holds
+    /// a fraction of that: [`byte_texel_load`]). With the image, the bytes its reading held
+    /// besides the file (at most).
     pub fn load_in(path: &Path, raw: bool, room: u64) -> Result<(Image, u64), BitmapError> {
         Image::read(path, raw, KEEP_BYTES_ABOVE, room)
     }
@@ -436,7 +470,7 @@ impl Image {
     fn read(path: &Path, raw: bool, above: u64, room: u64) -> Result<(Image, u64), BitmapError> {
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
         let bytes = std::fs::read(path).map_err(image::ImageError::IoError)?;
-        decode_image(&bytes, ext == "exr", raw, (room / TEXEL_LOAD).min(MAX_TEXELS), above, room)
+        decode_image(&bytes, ext == "exr", raw, MAX_TEXELS, room, TEXEL_LOAD, above)
     }
 
     pub fn width(&self) -> usize {
