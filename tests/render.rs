@@ -600,8 +600,10 @@ fn grazing_plane_shows_the_mip_level_of_its_footprint() {
             k += 1.0;
         }
         let top = (levels.len() - 1) as f32;
+        // Level 0 is the texture's own image.
+        let base = Arc::new(levels.remove(0));
         let coloured = BitmapTexture {
-            bitmap: bt.bitmap.clone(),
+            bitmap: base,
             filter: bt.filter,
             wrap: bt.wrap,
             to_uv: bt.to_uv,

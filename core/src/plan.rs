@@ -149,7 +149,13 @@ impl PlanDescription {
                 }
                 Texture::Bytes(bt) => {
                     let (w, h, filter) = (bt.bitmap.width, bt.bitmap.height, bt.filter.name());
-                    format!("texture: bitmap {w}x{h} {filter} lookup, no footprint, 8-bit texels")
+                    match bt.filter {
+                        FilterType::Trilinear | FilterType::Ewa => format!(
+                            "texture: bitmap {w}x{h} mip-mapped {}, footprint from ray differentials, 8-bit texels",
+                            if bt.filter == FilterType::Ewa { "EWA" } else { "trilinear" }
+                        ),
+                        _ => format!("texture: bitmap {w}x{h} {filter} lookup, no footprint, 8-bit texels"),
+                    }
                 }
                 Texture::Checkerboard(_) => "texture: checkerboard".to_string(),
                 Texture::Const(_) => continue,

@@ -52,9 +52,9 @@ const BASE: u64 = 1 << 20;
 /// What the XML parser holds per byte of the scene file (the text, the tree, positions), and
 /// keeps while the scene is built.
 pub(crate) const XML_PER_BYTE: u64 = 20;
-/// What a texel keeps: linear RGB, and the pyramid's levels when a filter reads them.
+/// What a texel keeps: linear RGB (a pyramid's levels above the image are charged by their
+/// own sizes, `texture::bitmap::from_scene`).
 const TEXEL_KEPT: u64 = std::mem::size_of::<Rgb>() as u64;
-pub(crate) const MIP_TEXEL: u64 = TEXEL_KEPT * 4 / 3;
 /// What the OBJ loader holds per byte of its file while parsing.
 pub(crate) const PARSE_PER_BYTE: u64 = 12;
 /// What parsing a curve file holds per point (a line), and per curve, besides its text.
@@ -152,8 +152,6 @@ pub(crate) struct Builder<'d> {
     bsdf_depth: usize,
     textures: HashMap<usize, Texture>,
     bitmaps: HashMap<(std::path::PathBuf, bool), Image>,
-    /// f32 texels made from a large 8-bit image's bytes for its pyramid textures, once a file.
-    f32_of_bytes: HashMap<(std::path::PathBuf, bool), Arc<Bitmap>>,
     bsdfs: Vec<Bsdf>,
     shapes: Vec<Shape>,
     lights: Vec<Light>,
@@ -196,7 +194,6 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         bsdf_depth: 0,
         textures: HashMap::new(),
         bitmaps: HashMap::new(),
-        f32_of_bytes: HashMap::new(),
         bsdfs: Vec::new(),
         shapes: Vec::new(),
         lights: Vec::new(),
@@ -351,29 +348,6 @@ impl Builder<'_> {
         let b = self.image(path, raw)?.0.clone();
         self.assets.push(path.to_path_buf());
         self.bitmaps.insert(key, b.clone());
-        Ok(b)
-    }
-
-    /// The f32 texels of a texture's image (`shared_image`): its own, or made from its bytes
-    /// (and charged) once however many pyramid textures read them.
-    pub(crate) fn shared_f32(
-        &mut self,
-        path: &std::path::Path,
-        raw: bool,
-        image: Image,
-    ) -> Result<Arc<Bitmap>, String> {
-        let bytes = match image {
-            Image::F32(bitmap) => return Ok(bitmap),
-            Image::Bytes(bytes) => bytes,
-        };
-        let key = (path.to_path_buf(), raw);
-        if let Some(b) = self.f32_of_bytes.get(&key) {
-            return Ok(b.clone());
-        }
-        let cost = (bytes.width * bytes.height) as u64 * TEXEL_KEPT;
-        self.budget.charge("the f32 texels of an 8-bit image", cost, cost)?;
-        let b = Arc::new(bytes.to_f32());
-        self.f32_of_bytes.insert(key, b.clone());
         Ok(b)
     }
 

@@ -564,23 +564,24 @@ pub(crate) fn from_scene(
     let mip = matches!(filter, FilterType::Trilinear | FilterType::Ewa);
     let image =
         b.shared_image(&path, raw).map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?;
-    let bitmap = match (image, mip) {
-        // A large 8-bit image's bytes, looked up as they are.
-        (Image::Bytes(bitmap), false) => {
-            return Ok(super::Texture::Bytes(Arc::new(super::BytesTexture { bitmap, filter, wrap, to_uv })))
-        }
-        // The pyramid filters read f32 texels (made from a large image's bytes once a file).
-        (image, _) => b
-            .shared_f32(&path, raw, image)
-            .map_err(|e| b.err(fpos, format!("cannot load texture '{rel}': {e}")))?,
-    };
+    // The pyramid filters' levels above the image (the image itself is their level 0).
+    let (w, h) = (image.width(), image.height());
     if mip {
-        let texels = (bitmap.width * bitmap.height) as u64;
-        let cost = texels.saturating_mul(crate::scene::build::MIP_TEXEL);
+        let texels: u64 = super::mipmap::upper_level_sizes(w, h).map(|(w, h)| (w * h) as u64).sum();
+        let cost = texels.saturating_mul(std::mem::size_of::<Rgb>() as u64);
         b.budget.charge(&format!("the mipmap of texture '{rel}'"), cost, cost).map_err(|e| b.err(fpos, e))?;
     }
-    let mip = mip.then(|| super::MipMap::build(&bitmap));
-    Ok(super::Texture::Bitmap(Arc::new(super::BitmapTexture { bitmap, filter, wrap, to_uv, mip })))
+    Ok(match image {
+        // A large 8-bit image's bytes, looked up as they are.
+        Image::Bytes(bitmap) => {
+            let mip = mip.then(|| super::MipMap::build(&*bitmap));
+            super::Texture::Bytes(Arc::new(super::BytesTexture { bitmap, filter, wrap, to_uv, mip }))
+        }
+        Image::F32(bitmap) => {
+            let mip = mip.then(|| super::MipMap::build(&*bitmap));
+            super::Texture::Bitmap(Arc::new(super::BitmapTexture { bitmap, filter, wrap, to_uv, mip }))
+        }
+    })
 }
 
 /// [`srgb_to_linear`] of `v`, bit for bit, from a table when `v` is an 8-bit value `k / 255`
@@ -837,9 +838,8 @@ mod load_tests {
     }
 
     /// One file read by textures of several filters is read once: a small image's f32 texels
-    /// are one allocation for all of them; a large 8-bit image's bytes serve its nearest and
-    /// bilinear textures, and its pyramid textures share one copy of f32 texels made from them. An image of
-    /// exactly [`KEEP_BYTES_ABOVE`] texels stays f32.
+    /// are one allocation for all of them, a large 8-bit image's bytes likewise (its pyramid
+    /// textures' level 0). An image of exactly [`KEEP_BYTES_ABOVE`] texels stays f32.
     #[test]
     fn an_image_used_by_several_filters_is_read_once() {
         use crate::texture::Texture;
@@ -866,11 +866,10 @@ mod load_tests {
                     assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && Arc::ptr_eq(&a.bitmap, &c.bitmap), "{file}");
                     assert!(Arc::ptr_eq(&c.bitmap, &d.bitmap) && c.mip.is_some() && d.mip.is_some());
                 }
-                // The pyramid textures share one f32 copy, the texels the f32 decode gives.
-                (Texture::Bytes(a), Texture::Bytes(b), Texture::Bitmap(c), Texture::Bitmap(d), true) => {
-                    assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && Arc::ptr_eq(&c.bitmap, &d.bitmap));
-                    assert!(c.mip.is_some() && d.mip.is_some());
-                    assert_eq!(c.bitmap.texels, Bitmap::load(&dir.join(file), false).unwrap().texels);
+                (Texture::Bytes(a), Texture::Bytes(b), Texture::Bytes(c), Texture::Bytes(d), true) => {
+                    assert!(Arc::ptr_eq(&a.bitmap, &b.bitmap) && Arc::ptr_eq(&a.bitmap, &c.bitmap), "{file}");
+                    assert!(Arc::ptr_eq(&c.bitmap, &d.bitmap) && c.mip.is_some() && d.mip.is_some());
+                    assert!(a.mip.is_none() && b.mip.is_none());
                 }
                 _ => panic!("{file}: {tex:?}"),
             }
@@ -878,10 +877,10 @@ mod load_tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 
-    /// A scene's 8-bit texture of more than [`KEEP_BYTES_ABOVE`] texels keeps its bytes
-    /// where it is looked up `nearest` or `bilinear` (and only there: the pyramid filters build
-    /// from f32), and looks up, through `to_uv` and each filter and wrap, the values of the
-    /// same texture kept as f32, bit for bit.
+    /// A scene's 8-bit texture of more than [`KEEP_BYTES_ABOVE`] texels keeps its bytes, and
+    /// looks up, through `to_uv` and each filter and wrap, the values of the same texture kept
+    /// as f32, bit for bit: point lookups, and the pyramid filters' lookups with footprints
+    /// from a texel's width to the whole image (levels 0 to the top, blended).
     #[test]
     fn a_large_8bit_texture_keeps_its_bytes_and_its_values() {
         use crate::texture::{BitmapTexture, TexCoord, Texture};
@@ -890,12 +889,13 @@ mod load_tests {
         let png = dir.join("big.png");
         noise_png(&png, 2049, 2048);
         let f32s = Arc::new(Bitmap::load(&png, false).unwrap());
-        for (filter, wrap, kept) in [
-            ("nearest", "repeat", true),
-            ("bilinear", "mirror", true),
-            ("bilinear", "clamp", true),
-            ("trilinear", "repeat", false),
-            ("ewa", "repeat", false),
+        for (filter, wrap) in [
+            ("nearest", "repeat"),
+            ("bilinear", "mirror"),
+            ("bilinear", "clamp"),
+            ("trilinear", "repeat"),
+            ("ewa", "mirror"),
+            ("ewa", "clamp"),
         ] {
             let xml = scene_of(&format!(
                 r#"<shape type="rectangle"><bsdf type="diffuse">
@@ -906,32 +906,35 @@ mod load_tests {
             ));
             let scene = crate::scene::Scene::load_str(&xml, &dir.join("s.xml"), &[]).unwrap();
             let tex = scene.bsdfs[0].textures()[0].clone();
-            assert_eq!(matches!(tex, Texture::Bytes(_)), kept, "{filter}");
-            let Texture::Bytes(b) = &tex else { continue };
+            let Texture::Bytes(b) = &tex else { panic!("{filter}: not kept as bytes") };
+            let pyramid = matches!(b.filter, FilterType::Trilinear | FilterType::Ewa);
+            assert_eq!(b.mip.is_some(), pyramid, "{filter}");
             let as_f32 = Texture::Bitmap(Arc::new(BitmapTexture {
                 bitmap: f32s.clone(),
                 filter: b.filter,
                 wrap: b.wrap,
                 to_uv: b.to_uv,
-                mip: None,
+                mip: pyramid.then(|| crate::texture::MipMap::build(&*f32s)),
             }));
+            let bits = |c: Rgb| c.to_array().map(f32::to_bits);
             for k in 0..5000u32 {
                 let uv = Vec2::new((k % 71) as f32 / 23.0 - 1.0, (k / 71) as f32 / 29.0 - 1.0);
-                let bits = |c: Rgb| c.to_array().map(f32::to_bits);
-                assert_eq!(
-                    bits(tex.eval(TexCoord::from(uv))),
-                    bits(as_f32.eval(TexCoord::from(uv))),
-                    "{filter} {uv}"
-                );
+                // Footprints of about 2^-12 to 2^1 of the map (a texel to all of it), skewed.
+                let size = (2.0f32).powf((k % 14) as f32 - 12.0);
+                let dx = Vec2::new(size, size * ((k % 5) as f32 - 2.0) * 0.3);
+                let dy = Vec2::new(-size * 0.2, size * (1.0 + (k % 3) as f32));
+                for tc in [TexCoord::from(uv), TexCoord { uv, dx, dy }] {
+                    assert_eq!(bits(tex.eval(tc)), bits(as_f32.eval(tc)), "{filter} {uv} {dx} {dy}");
+                }
             }
             assert_eq!(tex.mean().to_array().map(f32::to_bits), f32s.mean().to_array().map(f32::to_bits));
             let plan = scene.describe().to_string();
-            assert!(
-                plan.contains(&format!(
-                    "texture: bitmap 2049x2048 {filter} lookup, no footprint, 8-bit texels"
-                )),
-                "{plan}"
-            );
+            let line = match b.filter {
+                FilterType::Trilinear => "mip-mapped trilinear, footprint from ray differentials".to_string(),
+                FilterType::Ewa => "mip-mapped EWA, footprint from ray differentials".to_string(),
+                _ => format!("{filter} lookup, no footprint"),
+            };
+            assert!(plan.contains(&format!("texture: bitmap 2049x2048 {line}, 8-bit texels")), "{plan}");
         }
         std::fs::remove_dir_all(&dir).ok();
     }

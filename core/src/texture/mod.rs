@@ -59,18 +59,20 @@ pub struct BitmapTexture {
     pub wrap: WrapMode,
     /// Rows of the 2x3 affine `to_uv` map.
     pub to_uv: [[f32; 3]; 2],
-    /// The pyramid, built only for `trilinear` and `ewa`.
+    /// The pyramid above the image, built only for `trilinear` and `ewa`.
     pub mip: Option<MipMap>,
 }
 
-/// A bitmap of more than [`KEEP_BYTES_ABOVE`] 8-bit texels, looked up `nearest` or
-/// `bilinear`: [`BitmapTexture`]'s lookups on its bytes ([`Bitmap8`]), the same values.
+/// A bitmap of more than [`KEEP_BYTES_ABOVE`] 8-bit texels: [`BitmapTexture`]'s lookups on
+/// its bytes ([`Bitmap8`]), the same values; a pyramid's levels above the image are f32.
 #[derive(Debug)]
 pub struct BytesTexture {
     pub bitmap: Arc<Bitmap8>,
     pub filter: FilterType,
     pub wrap: WrapMode,
     pub to_uv: [[f32; 3]; 2],
+    /// The pyramid above the image, built only for `trilinear` and `ewa`.
+    pub mip: Option<MipMap>,
 }
 
 impl Texture {
@@ -100,19 +102,19 @@ impl Texture {
                 let uv = apply(&b.to_uv, tc.uv);
                 match (b.filter, &b.mip) {
                     (FilterType::Nearest, _) => b.bitmap.nearest(uv, b.wrap),
-                    (FilterType::Trilinear, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
-                        m.trilinear(uv, linear(&b.to_uv, tc.dx), linear(&b.to_uv, tc.dy), b.wrap)
-                    }
-                    (FilterType::Ewa, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
-                        m.ewa(uv, linear(&b.to_uv, tc.dx), linear(&b.to_uv, tc.dy), b.wrap)
+                    (_, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
+                        pyramid(m, &*b.bitmap, b.filter, &b.to_uv, uv, tc, b.wrap)
                     }
                     _ => b.bitmap.bilinear(uv, b.wrap),
                 }
             }
             Texture::Bytes(b) => {
                 let uv = apply(&b.to_uv, tc.uv);
-                match b.filter {
-                    FilterType::Nearest => b.bitmap.nearest(uv, b.wrap),
+                match (b.filter, &b.mip) {
+                    (FilterType::Nearest, _) => b.bitmap.nearest(uv, b.wrap),
+                    (_, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
+                        pyramid(m, &*b.bitmap, b.filter, &b.to_uv, uv, tc, b.wrap)
+                    }
                     _ => b.bitmap.bilinear(uv, b.wrap),
                 }
             }
@@ -131,7 +133,11 @@ impl Texture {
 
     /// Whether lookups use a footprint (a `trilinear` or `ewa` bitmap).
     pub fn wants_footprint(&self) -> bool {
-        matches!(self, Texture::Bitmap(b) if b.mip.is_some())
+        match self {
+            Texture::Bitmap(b) => b.mip.is_some(),
+            Texture::Bytes(b) => b.mip.is_some(),
+            _ => false,
+        }
     }
 
     /// Mean value over the texture's domain (for constants, the constant).
@@ -142,6 +148,25 @@ impl Texture {
             Texture::Bytes(b) => b.bitmap.mean(),
             Texture::Checkerboard(c) => (c.color0 + c.color1) * 0.5,
         }
+    }
+}
+
+/// A footprint lookup (`trilinear` or `ewa`) on the pyramid `m` over `base`, at `uv` (mapped
+/// already), the footprint `tc`'s derivatives mapped by `to_uv`.
+#[inline]
+fn pyramid(
+    m: &MipMap,
+    base: &impl mipmap::Texels,
+    filter: FilterType,
+    to_uv: &[[f32; 3]; 2],
+    uv: Vec2,
+    tc: TexCoord,
+    wrap: WrapMode,
+) -> Rgb {
+    let (dx, dy) = (linear(to_uv, tc.dx), linear(to_uv, tc.dy));
+    match filter {
+        FilterType::Ewa => m.ewa(base, uv, dx, dy, wrap),
+        _ => m.trilinear(base, uv, dx, dy, wrap),
     }
 }
 
