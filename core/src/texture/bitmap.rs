@@ -197,9 +197,9 @@ impl Bitmap {
     }
 }
 
-/// An 8-bit texture of more texels than this (48 MiB as f32 RGB), looked up `nearest` or
-/// `bilinear`, keeps its bytes: 3 a texel, a quarter of the memory, and faster where the f32
-/// texels would not fit the caches. Smaller ones are faster as f32, whose lookups read a texel
+/// An 8-bit texture of more texels than this (48 MiB as f32 RGB) keeps its bytes, whatever
+/// its filter (a pyramid's levels above it are f32): 3 a texel, a quarter of the memory, and
+/// faster where the f32 texels would not fit the caches. Smaller ones are faster as f32, whose lookups read a texel
 /// without a table (docs/BENCHMARKS.md, "Issue 15, twenty-eighth step": 512 x 512 as bytes
 /// -12%, 2048 x 2048 -6%; 4096 x 4096 +12%).
 pub const KEEP_BYTES_ABOVE: u64 = 1 << 22;
