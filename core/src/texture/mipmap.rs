@@ -21,39 +21,29 @@ pub trait Texels {
     fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb;
 }
 
-impl Texels for Bitmap {
-    fn width(&self) -> usize {
-        self.width
-    }
-    fn height(&self) -> usize {
-        self.height
-    }
-    #[inline]
-    fn texel(&self, x: usize, y: usize) -> Rgb {
-        Bitmap::texel(self, x, y)
-    }
-    #[inline]
-    fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
-        Bitmap::bilinear(self, uv, wrap)
-    }
+/// [`Texels`] by the type's own methods of the same names.
+macro_rules! texels_by_own_methods {
+    ($($t:ty),*) => {$(
+        impl Texels for $t {
+            fn width(&self) -> usize {
+                self.width
+            }
+            fn height(&self) -> usize {
+                self.height
+            }
+            #[inline]
+            fn texel(&self, x: usize, y: usize) -> Rgb {
+                <$t>::texel(self, x, y)
+            }
+            #[inline]
+            fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
+                <$t>::bilinear(self, uv, wrap)
+            }
+        }
+    )*};
 }
 
-impl Texels for Bitmap8 {
-    fn width(&self) -> usize {
-        self.width
-    }
-    fn height(&self) -> usize {
-        self.height
-    }
-    #[inline]
-    fn texel(&self, x: usize, y: usize) -> Rgb {
-        Bitmap8::texel(self, x, y)
-    }
-    #[inline]
-    fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
-        Bitmap8::bilinear(self, uv, wrap)
-    }
-}
+texels_by_own_methods!(Bitmap, Bitmap8);
 
 /// The levels above a texture's image: each halves the one below (box filter, rounding up),
 /// down to 1 x 1. Level 0, the image itself, is not copied: each lookup is given it.
