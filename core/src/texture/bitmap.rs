@@ -239,9 +239,8 @@ fn decode_image(
     };
     let fits = |room: u64, per_texel: u64| (room / per_texel).min(max_texels);
     let too_large = |width: u64, height: u64| too_large_for(width, height, fits(room, per_texel));
-    // What reading the image holds besides the file (set below, once known).
-    let mut held = 0;
-    let bmp = if exr {
+    // The image, and what reading it held besides the file.
+    let (bmp, held) = if exr {
         let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)?;
         // Every layer counts (the reader may decode them all to find the RGBA one).
         let mut texels = 0u64;
@@ -252,7 +251,9 @@ fn decode_image(
                 return Err(e);
             }
         }
-        Bitmap::decode_exr(bytes)?
+        let bmp = Bitmap::decode_exr(bytes)?;
+        let held = (bmp.width * bmp.height) as u64 * per_texel;
+        (bmp, held)
     } else {
         use image::ImageDecoder;
         let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
@@ -291,7 +292,7 @@ fn decode_image(
         if let Some(e) = too_large_for(w as u64, h as u64, fits(room, load)) {
             return Err(e);
         }
-        held = fixed + w as u64 * h as u64 * load;
+        let held = fixed + w as u64 * h as u64 * load;
         let img = image::DynamicImage::from_decoder(decoder)?;
         if let (true, Some(color)) = (keep_bytes, color) {
             let (width, height) = (img.width() as usize, img.height() as usize);
@@ -316,7 +317,7 @@ fn decode_image(
                 }
             })
             .collect();
-        Bitmap { width: rgb.width() as usize, height: rgb.height() as usize, texels }
+        (Bitmap { width: rgb.width() as usize, height: rgb.height() as usize, texels }, held)
     };
     if bmp.width == 0 || bmp.height == 0 {
         return Err(BitmapError::Empty);
@@ -324,9 +325,6 @@ fn decode_image(
     let bad = bmp.texels.iter().filter(|t| !t.is_finite()).count();
     if bad > 0 {
         return Err(BitmapError::NonFinite(bad));
-    }
-    if exr {
-        held = (bmp.width * bmp.height) as u64 * per_texel;
     }
     Ok((Image::F32(std::sync::Arc::new(bmp)), held))
 }

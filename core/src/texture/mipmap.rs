@@ -12,12 +12,14 @@ use crate::math::Rgb;
 /// (bounded cost per lookup, slight extra blur along the minor axis).
 pub const MAX_ANISOTROPY: f32 = 8.0;
 
-/// A pyramid level's texels: level 0 is the texture's own image (f32 texels, or the bytes a
-/// large 8-bit image keeps, read as the same values), the levels above are [`Bitmap`]s.
+/// A bitmap's texels: a texture's own image (f32 texels, or the bytes a large 8-bit image
+/// keeps, read as the same values), which is also its pyramid's level 0; the levels above are
+/// [`Bitmap`]s.
 pub trait Texels {
     fn width(&self) -> usize;
     fn height(&self) -> usize;
     fn texel(&self, x: usize, y: usize) -> Rgb;
+    fn nearest(&self, uv: Vec2, wrap: WrapMode) -> Rgb;
     fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb;
 }
 
@@ -34,6 +36,10 @@ macro_rules! texels_by_own_methods {
             #[inline]
             fn texel(&self, x: usize, y: usize) -> Rgb {
                 <$t>::texel(self, x, y)
+            }
+            #[inline]
+            fn nearest(&self, uv: Vec2, wrap: WrapMode) -> Rgb {
+                <$t>::nearest(self, uv, wrap)
             }
             #[inline]
             fn bilinear(&self, uv: Vec2, wrap: WrapMode) -> Rgb {

@@ -37,7 +37,7 @@ impl From<Vec2> for TexCoord {
 pub enum Texture {
     Const(Rgb),
     Bitmap(Arc<BitmapTexture>),
-    /// A large 8-bit bitmap without a pyramid, kept as its bytes.
+    /// A large 8-bit bitmap, kept as its bytes.
     Bytes(Arc<BytesTexture>),
     Checkerboard(Arc<Checkerboard>),
 }
@@ -51,10 +51,11 @@ pub struct Checkerboard {
     pub to_uv: [[f32; 3]; 2],
 }
 
-/// A bitmap with its lookup settings.
+/// A bitmap with its lookup settings, on f32 texels ([`BitmapTexture`]) or on the bytes of an
+/// 8-bit image of more than [`KEEP_BYTES_ABOVE`] texels ([`BytesTexture`], the same values).
 #[derive(Debug)]
-pub struct BitmapTexture {
-    pub bitmap: Arc<Bitmap>,
+pub struct ImageTexture<B> {
+    pub bitmap: Arc<B>,
     pub filter: FilterType,
     pub wrap: WrapMode,
     /// Rows of the 2x3 affine `to_uv` map.
@@ -63,16 +64,29 @@ pub struct BitmapTexture {
     pub mip: Option<MipMap>,
 }
 
-/// A bitmap of more than [`KEEP_BYTES_ABOVE`] 8-bit texels: [`BitmapTexture`]'s lookups on
-/// its bytes ([`Bitmap8`]), the same values; a pyramid's levels above the image are f32.
-#[derive(Debug)]
-pub struct BytesTexture {
-    pub bitmap: Arc<Bitmap8>,
-    pub filter: FilterType,
-    pub wrap: WrapMode,
-    pub to_uv: [[f32; 3]; 2],
-    /// The pyramid above the image, built only for `trilinear` and `ewa`.
-    pub mip: Option<MipMap>,
+/// A bitmap of f32 texels.
+pub type BitmapTexture = ImageTexture<Bitmap>;
+/// A bitmap of 8-bit texels ([`Bitmap8`]); a pyramid's levels above the image are f32.
+pub type BytesTexture = ImageTexture<Bitmap8>;
+
+impl<B: mipmap::Texels> ImageTexture<B> {
+    /// The value at `tc`: the filter's lookup, or a bilinear one where a pyramid filter has no
+    /// footprint.
+    #[inline(always)]
+    fn look_up(&self, tc: TexCoord) -> Rgb {
+        let uv = apply(&self.to_uv, tc.uv);
+        match (self.filter, &self.mip) {
+            (FilterType::Nearest, _) => self.bitmap.nearest(uv, self.wrap),
+            (filter, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
+                let (dx, dy) = (linear(&self.to_uv, tc.dx), linear(&self.to_uv, tc.dy));
+                match filter {
+                    FilterType::Ewa => m.ewa(&*self.bitmap, uv, dx, dy, self.wrap),
+                    _ => m.trilinear(&*self.bitmap, uv, dx, dy, self.wrap),
+                }
+            }
+            _ => self.bitmap.bilinear(uv, self.wrap),
+        }
+    }
 }
 
 impl Texture {
@@ -98,26 +112,8 @@ impl Texture {
                     c.color1
                 }
             }
-            Texture::Bitmap(b) => {
-                let uv = apply(&b.to_uv, tc.uv);
-                match (b.filter, &b.mip) {
-                    (FilterType::Nearest, _) => b.bitmap.nearest(uv, b.wrap),
-                    (_, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
-                        pyramid(m, &*b.bitmap, b.filter, &b.to_uv, uv, tc, b.wrap)
-                    }
-                    _ => b.bitmap.bilinear(uv, b.wrap),
-                }
-            }
-            Texture::Bytes(b) => {
-                let uv = apply(&b.to_uv, tc.uv);
-                match (b.filter, &b.mip) {
-                    (FilterType::Nearest, _) => b.bitmap.nearest(uv, b.wrap),
-                    (_, Some(m)) if tc.dx != Vec2::ZERO || tc.dy != Vec2::ZERO => {
-                        pyramid(m, &*b.bitmap, b.filter, &b.to_uv, uv, tc, b.wrap)
-                    }
-                    _ => b.bitmap.bilinear(uv, b.wrap),
-                }
-            }
+            Texture::Bitmap(b) => b.look_up(tc),
+            Texture::Bytes(b) => b.look_up(tc),
         }
     }
 
@@ -148,25 +144,6 @@ impl Texture {
             Texture::Bytes(b) => b.bitmap.mean(),
             Texture::Checkerboard(c) => (c.color0 + c.color1) * 0.5,
         }
-    }
-}
-
-/// A footprint lookup (`trilinear` or `ewa`) on the pyramid `m` over `base`, at `uv` (mapped
-/// already), the footprint `tc`'s derivatives mapped by `to_uv`.
-#[inline]
-fn pyramid(
-    m: &MipMap,
-    base: &impl mipmap::Texels,
-    filter: FilterType,
-    to_uv: &[[f32; 3]; 2],
-    uv: Vec2,
-    tc: TexCoord,
-    wrap: WrapMode,
-) -> Rgb {
-    let (dx, dy) = (linear(to_uv, tc.dx), linear(to_uv, tc.dy));
-    match filter {
-        FilterType::Ewa => m.ewa(base, uv, dx, dy, wrap),
-        _ => m.trilinear(base, uv, dx, dy, wrap),
     }
 }
 
