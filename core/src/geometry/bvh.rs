@@ -39,6 +39,25 @@ const PLANAR: u32 = 1 << 29;
 /// The shape index of a [`PrimRef`].
 const SHAPE: u32 = !(TRIANGLE | CURVE | PLANAR);
 
+/// What the tree builder takes as one primitive: `len` consecutive primitives of one shape
+/// from `first`. That is a piece of up to [`PIECE`] consecutive segments of one fibre in a
+/// tree mostly of fibres, and one primitive otherwise.
+#[derive(Clone, Copy, Debug)]
+struct Unit {
+    first: PrimRef,
+    len: u32,
+}
+
+/// Consecutive segments of one fibre that a tree mostly of fibres builds over as one
+/// primitive, and so keeps together in one leaf. A leaf's segments then lie side by side in
+/// memory, and the tree has a third of the leaves: on hair.xml 10,524 nodes instead of 13,389,
+/// and a third of the build's primitives. Measured against one segment a primitive
+/// (docs/BENCHMARKS.md, issue 15's thirtieth step): 3 rendered hair.xml and whimsical.xml
+/// 3-5% faster; 4 made whimsical 6% faster but hair 4% slower, and 2 (two pieces a leaf)
+/// cost 4% more instructions on hair.
+const PIECE: u32 = 3;
+const _: () = assert!(PIECE <= LEAF_MAX, "a leaf holds a whole piece");
+
 /// Primitive count above which the BVH is built with obvhs' very fast settings.
 const FAST_BUILD_ABOVE: usize = 1 << 21;
 
@@ -994,29 +1013,36 @@ struct Builder<'a> {
 }
 
 impl Builder<'_> {
-    /// Builds a tree over `refs` into node `slot` and appends their primitives in leaf order;
-    /// returns the tree's box and depth.
-    fn bottom(&mut self, refs: &[PrimRef], params: BvhBuildParams, slot: usize) -> (Aabb, usize) {
+    /// Builds a tree over `units` into node `slot` and appends their primitives in leaf
+    /// order; returns the tree's box and depth.
+    fn bottom(&mut self, units: &[Unit], params: BvhBuildParams, slot: usize) -> (Aabb, usize) {
         let shapes = self.shapes;
-        let aabbs: Vec<Aabb> = refs
-            .iter()
-            .map(|p| {
-                let (lo, hi) = shapes[(p.shape & SHAPE) as usize].prim_bounds(p.index as usize);
-                Aabb::new(Vec3A::from(lo), Vec3A::from(hi))
-            })
-            .collect();
+        let aabbs: Vec<Aabb> = units.iter().map(|u| unit_bounds(shapes, u)).collect();
         let mut bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
         drop(aabbs);
-        merge_triangle_leaves(&mut bvh2, |k| refs[k as usize].shape & TRIANGLE != 0);
+        merge_triangle_leaves(&mut bvh2, |k| units[k as usize].first.shape & TRIANGLE != 0);
+        // Each unit's primitives in leaf order; `start[i]` is where the unit at position `i`
+        // of the tree's order begins among them.
+        let mut order = Vec::with_capacity(units.len());
+        let mut start = Vec::with_capacity(units.len() + 1);
+        for &k in &bvh2.primitive_indices {
+            let u = units[k as usize];
+            start.push(order.len() as u32);
+            order.extend((0..u.len).map(|j| PrimRef { index: u.first.index + j, ..u.first }));
+        }
+        start.push(order.len() as u32);
+        let span = |node: &obvhs::bvh2::node::Bvh2Node| {
+            start[node.first_index as usize]..start[(node.first_index + node.prim_count) as usize]
+        };
         let offset = self.prims.len() as u32;
-        let order = &bvh2.primitive_indices;
         let depth = self.collapse(&bvh2, slot, |leaf| {
-            debug_assert!((1..=LEAF_MAX).contains(&leaf.prim_count));
-            let range = leaf.first_index as usize..(leaf.first_index + leaf.prim_count) as usize;
-            let all_tris = order[range].iter().all(|&k| refs[k as usize].shape & TRIANGLE != 0);
+            let range = span(leaf);
+            debug_assert!((1..=LEAF_MAX).contains(&(range.len() as u32)));
+            let all_tris =
+                order[range.start as usize..range.end as usize].iter().all(|p| p.shape & TRIANGLE != 0);
             LEAF | if all_tris { TRI_LEAF } else { 0 }
-                | (leaf.prim_count - 1) << FIRST_BITS
-                | (offset + leaf.first_index)
+                | (range.len() as u32 - 1) << FIRST_BITS
+                | (offset + range.start)
         });
         // Leaf by leaf, in leaf order: its triangles become one block of `tris`. (The leaves
         // the tree reaches: merged leaves leave their former children behind, unreached.)
@@ -1025,7 +1051,8 @@ impl Builder<'_> {
         while let Some(n) = todo.pop() {
             let node = &bvh2.nodes[n];
             if node.is_leaf() {
-                leaves.push((node.first_index as usize, node.prim_count as usize));
+                let range = span(node);
+                leaves.push((range.start as usize, range.len()));
             } else {
                 todo.extend([node.first_index as usize, node.first_index as usize + 1]);
             }
@@ -1035,8 +1062,7 @@ impl Builder<'_> {
         for (first, count) in leaves {
             let start = self.prims.len();
             tris.clear();
-            for &k in &order[first..first + count] {
-                let mut p = refs[k as usize];
+            for mut p in order[first..first + count].iter().copied() {
                 match &shapes[(p.shape & SHAPE) as usize].geometry {
                     Geometry::Mesh(m) if p.shape & TRIANGLE != 0 => {
                         tris.push((m.tri(p.index as usize), p.index));
@@ -1183,17 +1209,25 @@ fn coplanar<'a>(tris: impl Iterator<Item = &'a [Vec3; 3]> + Clone) -> bool {
 /// extent): about ten times the rounding of a rectangle's corners near the origin.
 const FLAT: f64 = 1e-6;
 
-/// `refs` (all `count` primitives) sorted by the Morton code of their box centres (10 bits an
+/// A unit's box: its primitives' boxes together.
+fn unit_bounds(shapes: &[Shape], u: &Unit) -> Aabb {
+    let shape = &shapes[(u.first.shape & SHAPE) as usize];
+    let (mut lo, mut hi) = shape.prim_bounds(u.first.index as usize);
+    for j in 1..u.len {
+        let (l, h) = shape.prim_bounds((u.first.index + j) as usize);
+        (lo, hi) = (lo.min(l), hi.max(h));
+    }
+    Aabb::new(Vec3A::from(lo), Vec3A::from(hi))
+}
+
+/// `units` (all `count` of them) sorted by the Morton code of their box centres (10 bits an
 /// axis): neighbours in the order are neighbours in space.
-fn morton_order(shapes: &[Shape], refs: impl Iterator<Item = PrimRef> + Clone, count: usize) -> Vec<PrimRef> {
+fn morton_order(shapes: &[Shape], units: impl Iterator<Item = Unit> + Clone, count: usize) -> Vec<Unit> {
     use rayon::slice::ParallelSliceMut;
-    let centre = |p: &PrimRef| {
-        let (lo, hi) = shapes[(p.shape & SHAPE) as usize].prim_bounds(p.index as usize);
-        (lo + hi) * 0.5
-    };
+    let centre = |u: &Unit| Vec3::from(unit_bounds(shapes, u).center());
     let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for p in refs.clone() {
-        let c = centre(&p);
+    for u in units.clone() {
+        let c = centre(&u);
         (lo, hi) = (lo.min(c), hi.max(c));
     }
     let scale = 1023.0 / (hi - lo).max(Vec3::splat(f32::MIN_POSITIVE));
@@ -1204,14 +1238,14 @@ fn morton_order(shapes: &[Shape], refs: impl Iterator<Item = PrimRef> + Clone, c
         x = (x | x << 4) & 0x030c30c3;
         (x | x << 2) & 0x09249249
     };
-    let mut keyed: Vec<(u32, PrimRef)> = Vec::with_capacity(count);
-    keyed.extend(refs.map(|p| {
-        let q = ((centre(&p) - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
-        (spread(q.x as u32) << 2 | spread(q.y as u32) << 1 | spread(q.z as u32), p)
+    let mut keyed: Vec<(u32, Unit)> = Vec::with_capacity(count);
+    keyed.extend(units.map(|u| {
+        let q = ((centre(&u) - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
+        (spread(q.x as u32) << 2 | spread(q.y as u32) << 1 | spread(q.z as u32), u)
     }));
-    // A total order (primitives of equal code by shape and index): the tree does not depend on
-    // how the sort shares its work.
-    keyed.par_sort_unstable_by_key(|k| (k.0, k.1.shape, k.1.index));
+    // A total order (units of equal code by shape and first index): the tree does not depend
+    // on how the sort shares its work.
+    keyed.par_sort_unstable_by_key(|k| (k.0, k.1.first.shape, k.1.first.index));
     keyed.into_iter().map(|k| k.1).collect()
 }
 
@@ -1291,15 +1325,31 @@ impl Accel {
             .map(|&s| shapes[s as usize].prim_count())
             .sum();
         let curves = fibres > 0;
-        let refs = || {
-            members.iter().flat_map(|&s| {
+        // A tree mostly of fibres builds over pieces of them ([`PIECE`]), a piece a leaf.
+        let mostly_fibres = 2 * fibres >= count;
+        let units = || {
+            members.iter().flat_map(move |&s| {
                 let shape = &shapes[s as usize];
-                let kind = match shape.geometry {
-                    Geometry::Mesh(_) => TRIANGLE,
-                    Geometry::Curves(_) => CURVE,
-                    _ => 0,
+                let (kind, fibre) = match &shape.geometry {
+                    Geometry::Mesh(_) => (TRIANGLE, None),
+                    Geometry::Curves(c) => (CURVE, Some(c).filter(|_| mostly_fibres)),
+                    _ => (0, None),
                 };
-                (0..shape.prim_count() as u32).map(move |index| PrimRef { shape: s | kind, index })
+                let n = shape.prim_count() as u32;
+                let mut index = 0;
+                std::iter::from_fn(move || {
+                    (index < n).then(|| {
+                        let mut len = 1;
+                        if let Some(c) = fibre {
+                            while len < PIECE && c.joined_to_next((index + len - 1) as usize) {
+                                len += 1;
+                            }
+                        }
+                        let unit = Unit { first: PrimRef { shape: s | kind, index }, len };
+                        index += len;
+                        unit
+                    })
+                })
             })
         };
         let mut b = Builder {
@@ -1328,7 +1378,7 @@ impl Accel {
         // scenes keep the medium build: cbox -2%, but thinlens +3.8%.
         let mut params = if count > FAST_BUILD_ABOVE {
             BvhBuildParams::very_fast_build()
-        } else if 2 * fibres >= count {
+        } else if mostly_fibres {
             BvhBuildParams::very_slow_build()
         } else {
             BvhBuildParams::medium_build()
@@ -1337,23 +1387,26 @@ impl Accel {
         // a box test costing twice a primitive's. Leaves of 1 hold twice the nodes (29 bytes a
         // fibre segment against 16) and once rendered hair.xml 5% faster; measured again at
         // issue 15's twenty-fifth step, neither 1 nor 2 for fibre trees was faster on hair.xml or
-        // whimsical.xml (docs/BENCHMARKS.md). 3 is 15% slower on cbox.
-        params.max_prims_per_leaf = LEAF_MAX;
+        // whimsical.xml (docs/BENCHMARKS.md). 3 is 15% slower on cbox. A tree of fibre
+        // pieces holds one piece a leaf; its triangles are then joined into leaves only where
+        // `merge_triangle_leaves` finds that cheaper.
+        params.max_prims_per_leaf = if mostly_fibres { LEAF_MAX / PIECE } else { LEAF_MAX };
         params.collapse_traversal_cost = 2.0;
-        let depth = if count <= batch {
-            let all: Vec<PrimRef> = refs().collect();
+        let unit_count = units().count();
+        let depth = if unit_count <= batch {
+            let all: Vec<Unit> = units().collect();
             b.bottom(&all, params, 0).1
         } else {
-            // Bounded batches: primitives in Morton order of their centres, a tree per BATCH
-            // of them, and a tree over the batches. obvhs' scratch (about 300 bytes a
-            // primitive) is then held for one batch at a time.
-            let order = morton_order(shapes, refs(), count);
-            let mut roots = Vec::with_capacity(count.div_ceil(batch));
+            // Bounded batches: units in Morton order of their centres, a tree per BATCH of
+            // them, and a tree over the batches. obvhs' scratch (about 300 bytes a unit) is
+            // then held for one batch at a time.
+            let order = morton_order(shapes, units(), unit_count);
+            let mut roots = Vec::with_capacity(unit_count.div_ceil(batch));
             let mut depth = 0;
-            for refs in order.chunks(batch) {
+            for units in order.chunks(batch) {
                 b.nodes.push(EMPTY_NODE);
                 let slot = b.nodes.len() - 1;
-                let (root_box, d) = b.bottom(refs, params, slot);
+                let (root_box, d) = b.bottom(units, params, slot);
                 roots.push((slot as u32, root_box));
                 depth = depth.max(d);
             }
@@ -2924,6 +2977,92 @@ mod tests {
             self_hits > 100 && instanced_self_hits > 10,
             "{self_hits} self-hits, {instanced_self_hits} in instances"
         );
+    }
+
+    /// A tree mostly of fibres builds over pieces of up to `PIECE` joined segments of one
+    /// fibre: whole and in batches (of 7 and 40 pieces), every fibre leaf holds one piece,
+    /// every segment is in one leaf, and every kernel finds what testing every segment and
+    /// triangle finds. The fibres have 1 to 8 segments, so pieces end where fibres do.
+    #[test]
+    fn fibre_pieces_stay_whole_in_leaves_and_find_what_brute_force_finds() {
+        use crate::geometry::curves::Curves;
+        let mut s = 5;
+        let curves: Vec<Vec<(Vec3, f32)>> = (0..120)
+            .map(|i| {
+                let root = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s));
+                let dir = (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5)
+                    .normalize_or(Vec3::Y);
+                (0..2 + i % 8).map(|k| (root + dir * (0.05 * k as f32), 0.01)).collect()
+            })
+            .collect();
+        let fur = Curves::linear(&curves);
+        let segments = fur.segments.len();
+        let shapes = vec![soup(20, 3).remove(0), shape(Geometry::Curves(fur), "fur")];
+        let Geometry::Mesh(mesh) = &shapes[0].geometry else { unreachable!() };
+        let Geometry::Curves(fur) = &shapes[1].geometry else { unreachable!() };
+        assert!(2 * segments >= segments + mesh.tris.len(), "mostly fibres");
+        for batch in [BATCH, 40, 7] {
+            let mut accel = Accel::build_in_batches(&shapes, &[], batch);
+            let mut seen = vec![0u32; segments];
+            for node in &accel.nodes {
+                for (lane, &c) in node.child.iter().enumerate() {
+                    if node.used >> lane & 1 == 0 || c & LEAF == 0 {
+                        continue;
+                    }
+                    let (first, count) = ((c & FIRST) as usize, ((c >> FIRST_BITS) & 3) as usize + 1);
+                    let prims = &accel.prims[first..first + count];
+                    if prims.iter().all(|p| p.shape & CURVE == 0) {
+                        continue;
+                    }
+                    assert!(count <= PIECE as usize, "batch {batch}: a leaf of {count} with fibres");
+                    for (j, p) in prims.iter().enumerate() {
+                        assert_eq!(
+                            p.shape & !PLANAR,
+                            1 | CURVE,
+                            "batch {batch}: a fibre leaf holds only fibres"
+                        );
+                        assert_eq!(p.index, prims[0].index + j as u32, "batch {batch}: consecutive");
+                        if j > 0 {
+                            assert!(fur.joined_to_next(p.index as usize - 1), "batch {batch}: one fibre");
+                        }
+                        seen[p.index as usize] += 1;
+                    }
+                }
+            }
+            assert!(seen.iter().all(|&n| n == 1), "batch {batch}: every segment in one leaf");
+            let mut fibre_hits = 0;
+            for ray_index in 0..2000 {
+                let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 3.0 - 1.0;
+                let target = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s));
+                let mut ray = Ray::new(o, (target - o).normalize_or(Vec3::X));
+                if ray_index % 3 == 0 {
+                    ray.tmax = 1.5;
+                }
+                let pre = RayPre::new(ray.d);
+                let mut brute = f32::INFINITY;
+                for i in 0..mesh.tris.len() {
+                    let [a, b, c] = mesh.tri(i);
+                    if let Some((t, ..)) = intersect_triangle(&ray, &pre, ray.tmax, a, b, c) {
+                        brute = brute.min(t);
+                    }
+                }
+                let mut on_fibre = false;
+                for i in 0..segments {
+                    if let Some(h) = fur.intersect(i, ray.o, ray.d, ray.tmin, ray.tmax.min(brute)) {
+                        (brute, on_fibre) = (brute.min(h.t), true);
+                    }
+                }
+                fibre_hits += on_fibre as u32;
+                let brute = (brute < ray.tmax).then_some(brute);
+                for kernel in Kernel::available() {
+                    accel.set_kernel(kernel);
+                    let hit = accel.intersect(&shapes, &ray).map(|it| it.t);
+                    assert_eq!(hit, brute, "{kernel:?}, batch {batch}, ray {ray_index}");
+                    assert_eq!(accel.occluded(&shapes, &ray), brute.is_some(), "{kernel:?}, ray {ray_index}");
+                }
+            }
+            assert!(fibre_hits > 300, "batch {batch}: {fibre_hits} rays hit a fibre first");
+        }
     }
 
     /// Transforms an instance may have: rotated, scaled unevenly, mirrored, far from the

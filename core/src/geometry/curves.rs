@@ -438,7 +438,7 @@ impl Segment {
 impl Curves {
     /// Whether segment `i` continues into segment `i + 1` (same curve).
     #[inline]
-    fn joined_to_next(&self, i: usize) -> bool {
+    pub(crate) fn joined_to_next(&self, i: usize) -> bool {
         i + 1 < self.segments.len() && self.segments[i + 1].u0 > 0.0
     }
 
