@@ -50,11 +50,11 @@ struct Unit {
 
 /// Consecutive segments of one fibre that a tree mostly of fibres builds over as one
 /// primitive, and so keeps together in one leaf. A leaf's segments then lie side by side in
-/// memory, and the tree has a third of the leaves: on hair.xml 10,524 nodes instead of 13,389,
-/// and a third of the build's primitives. Measured against one segment a primitive
-/// (docs/BENCHMARKS.md, issue 15's thirtieth step): 3 rendered hair.xml and whimsical.xml
-/// 3-5% faster; 4 made whimsical 6% faster but hair 4% slower, and 2 (two pieces a leaf)
-/// cost 4% more instructions on hair.
+/// memory, the builder takes a third of the primitives (hair.xml loads in 0.25 s instead of
+/// 0.44), and the tree is smaller (hair.xml: 10,524 nodes instead of 13,389). Measured
+/// against leaves of up to four segments of any fibres (docs/BENCHMARKS.md, issue 15's
+/// thirtieth step): 3 renders hair.xml 3% and whimsical.xml 9% faster; 4 made whimsical
+/// faster still but hair 4% slower; 2 was slower on hair, alone or two pieces a leaf.
 const PIECE: u32 = 3;
 const _: () = assert!(PIECE <= LEAF_MAX, "a leaf holds a whole piece");
 
@@ -1249,6 +1249,50 @@ fn morton_order(shapes: &[Shape], units: impl Iterator<Item = Unit> + Clone, cou
     keyed.into_iter().map(|k| k.1).collect()
 }
 
+/// The fibre segments among `members`' primitives, and whether they are at least half of
+/// them: a tree mostly of fibres, which builds over pieces of them ([`PIECE`]).
+fn fibre_share(shapes: &[Shape], members: &[u32]) -> (usize, bool) {
+    let count: usize = members.iter().map(|&s| shapes[s as usize].prim_count()).sum();
+    let fibres: usize = members
+        .iter()
+        .filter(|&&s| matches!(shapes[s as usize].geometry, Geometry::Curves(_)))
+        .map(|&s| shapes[s as usize].prim_count())
+        .sum();
+    (fibres, 2 * fibres >= count)
+}
+
+/// What the builder takes as primitives for a tree over `members` ([`Unit`]): with `pieces`,
+/// each fibre in pieces of up to [`PIECE`] joined segments; every other primitive alone.
+fn units_of<'a>(
+    shapes: &'a [Shape],
+    members: &'a [u32],
+    pieces: bool,
+) -> impl Iterator<Item = Unit> + Clone + 'a {
+    members.iter().flat_map(move |&s| {
+        let shape = &shapes[s as usize];
+        let (kind, fibre) = match &shape.geometry {
+            Geometry::Mesh(_) => (TRIANGLE, None),
+            Geometry::Curves(c) => (CURVE, Some(c).filter(|_| pieces)),
+            _ => (0, None),
+        };
+        let n = shape.prim_count() as u32;
+        let mut index = 0;
+        std::iter::from_fn(move || {
+            (index < n).then(|| {
+                let mut len = 1;
+                if let Some(c) = fibre {
+                    while len < PIECE && c.joined_to_next((index + len - 1) as usize) {
+                        len += 1;
+                    }
+                }
+                let unit = Unit { first: PrimRef { shape: s | kind, index }, len };
+                index += len;
+                unit
+            })
+        })
+    })
+}
+
 impl Accel {
     pub fn build(shapes: &[Shape]) -> Accel {
         Accel::build_grouped(shapes, &[])
@@ -1262,6 +1306,22 @@ impl Accel {
     /// If a group holds an instance, or an instance names no group in `groups`.
     pub fn build_grouped(shapes: &[Shape], groups: &[Vec<u32>]) -> Accel {
         Accel::build_in_batches(shapes, groups, BATCH)
+    }
+
+    /// How many primitives [`Accel::build_grouped`]'s builder would take for these shapes and
+    /// groups, over all their trees ([`Unit`]: pieces of fibres in trees mostly of fibres), and
+    /// the most in one tree: what its scratch memory follows.
+    pub fn build_units(shapes: &[Shape], groups: &[Vec<u32>]) -> (usize, usize) {
+        let mut member = vec![false; shapes.len()];
+        for &s in groups.iter().flatten() {
+            member[s as usize] = true;
+        }
+        let top: Vec<u32> = (0..shapes.len() as u32).filter(|&s| !member[s as usize]).collect();
+        let counts: Vec<usize> = std::iter::once(&top)
+            .chain(groups)
+            .map(|m| units_of(shapes, m, fibre_share(shapes, m).1).count())
+            .collect();
+        (counts.iter().sum(), counts.iter().copied().max().unwrap_or(0))
     }
 
     /// [`Accel::build_grouped`] with bottom-level trees of at most `batch` primitives.
@@ -1319,39 +1379,9 @@ impl Accel {
         let count: usize = members.iter().map(|&s| shapes[s as usize].prim_count()).sum();
         assert!(count <= MAX_PRIMS, "{count} primitives: one BVH holds at most {MAX_PRIMS}");
         let kernel = Kernel::detect();
-        let fibres: usize = members
-            .iter()
-            .filter(|&&s| matches!(shapes[s as usize].geometry, Geometry::Curves(_)))
-            .map(|&s| shapes[s as usize].prim_count())
-            .sum();
+        let (fibres, mostly_fibres) = fibre_share(shapes, members);
         let curves = fibres > 0;
-        // A tree mostly of fibres builds over pieces of them ([`PIECE`]), a piece a leaf.
-        let mostly_fibres = 2 * fibres >= count;
-        let units = || {
-            members.iter().flat_map(move |&s| {
-                let shape = &shapes[s as usize];
-                let (kind, fibre) = match &shape.geometry {
-                    Geometry::Mesh(_) => (TRIANGLE, None),
-                    Geometry::Curves(c) => (CURVE, Some(c).filter(|_| mostly_fibres)),
-                    _ => (0, None),
-                };
-                let n = shape.prim_count() as u32;
-                let mut index = 0;
-                std::iter::from_fn(move || {
-                    (index < n).then(|| {
-                        let mut len = 1;
-                        if let Some(c) = fibre {
-                            while len < PIECE && c.joined_to_next((index + len - 1) as usize) {
-                                len += 1;
-                            }
-                        }
-                        let unit = Unit { first: PrimRef { shape: s | kind, index }, len };
-                        index += len;
-                        unit
-                    })
-                })
-            })
-        };
+        let units = || units_of(shapes, members, mostly_fibres);
         let mut b = Builder {
             shapes,
             nodes: vec![EMPTY_NODE],

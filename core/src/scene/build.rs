@@ -60,11 +60,12 @@ pub(crate) const PARSE_PER_BYTE: u64 = 12;
 /// What parsing a curve file holds per point (a line), and per curve, besides its text.
 pub(crate) const CURVE_POINT_PARSE: u64 = 32;
 pub(crate) const CURVE_PARSE: u64 = 96;
-/// What building the BVH holds at its peak per primitive of one batch (obvhs' scratch), what
-/// it holds per primitive of the scene on top of what it keeps (the Morton order of a batched
-/// build), and what it keeps.
-const BVH_BUILD_PER_PRIM: u64 = 384;
-const BVH_ORDER_PER_PRIM: u64 = 20;
+/// What building the BVH holds at its peak per primitive the builder takes in one batch
+/// (obvhs' scratch; a piece of fibre is one, `Accel::build_units`), what it holds per such
+/// primitive of the scene on top of what it keeps (the Morton order of a batched build), and
+/// what it keeps per primitive.
+const BVH_BUILD_PER_UNIT: u64 = 384;
+const BVH_ORDER_PER_UNIT: u64 = 28;
 const BVH_KEPT_PER_PRIM: u64 = 64;
 /// The decoded copy of a small scene's tree per primitive (256 bytes a node; hair.xml has
 /// 0.14 nodes a primitive, 36 bytes), up to `geometry::bvh::FLAT_BYTES` in all.
@@ -239,14 +240,15 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
     let infinite_lights =
         (0..b.lights.len() as u32).filter(|&i| b.lights[i as usize].is_infinite()).collect();
     let prims: u64 = b.shapes.iter().map(|s| s.prim_count() as u64).sum();
+    let (units, most) = Accel::build_units(&b.shapes, &b.groups);
     let flat = prims.saturating_mul(FLAT_PER_PRIM).min(crate::geometry::bvh::FLAT_BYTES as u64);
     b.budget
         .charge(
             &format!("the BVH of {prims} primitives"),
-            prims
-                .min(crate::geometry::bvh::BATCH as u64)
-                .saturating_mul(BVH_BUILD_PER_PRIM)
-                .saturating_add(prims.saturating_mul(BVH_KEPT_PER_PRIM + BVH_ORDER_PER_PRIM))
+            (most.min(crate::geometry::bvh::BATCH) as u64)
+                .saturating_mul(BVH_BUILD_PER_UNIT)
+                .saturating_add((units as u64).saturating_mul(BVH_ORDER_PER_UNIT))
+                .saturating_add(prims.saturating_mul(BVH_KEPT_PER_PRIM))
                 .saturating_add(flat),
             prims.saturating_mul(BVH_KEPT_PER_PRIM).saturating_add(flat),
         )
