@@ -54,7 +54,8 @@ struct Unit {
 /// 0.44), and the tree is smaller (hair.xml: 10,524 nodes instead of 13,389). Measured
 /// against leaves of up to four segments of any fibres (docs/BENCHMARKS.md, issue 15's
 /// thirtieth step): 3 renders hair.xml 3% and whimsical.xml 9% faster; 4 made whimsical
-/// faster still but hair 4% slower; 2 was slower on hair, alone or two pieces a leaf.
+/// faster still but hair 4% slower; 2 made hair 5% slower (and two pieces of 2 a leaf ran 4%
+/// more instructions there).
 const PIECE: u32 = 3;
 const _: () = assert!(PIECE <= LEAF_MAX, "a leaf holds a whole piece");
 
