@@ -1021,10 +1021,14 @@ impl Builder<'_> {
         let aabbs: Vec<Aabb> = units.iter().map(|u| unit_bounds(shapes, u)).collect();
         let mut bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
         drop(aabbs);
-        merge_triangle_leaves(&mut bvh2, |k| units[k as usize].first.shape & TRIANGLE != 0);
+        let pieces = params.max_prims_per_leaf == 1;
+        if pieces {
+            leaves_in_tree_order(&mut bvh2);
+        }
+        merge_triangle_leaves(&mut bvh2, pieces, |k| units[k as usize].first.shape & TRIANGLE != 0);
         // Each unit's primitives in leaf order; `start[i]` is where the unit at position `i`
         // of the tree's order begins among them.
-        let mut order = Vec::with_capacity(units.len());
+        let mut order = Vec::with_capacity(units.iter().map(|u| u.len as usize).sum());
         let mut start = Vec::with_capacity(units.len() + 1);
         for &k in &bvh2.primitive_indices {
             let u = units[k as usize];
@@ -1038,7 +1042,7 @@ impl Builder<'_> {
         let offset = self.prims.len() as u32;
         let depth = self.collapse(&bvh2, slot, |leaf| {
             let range = span(leaf);
-            debug_assert!((1..=LEAF_MAX).contains(&(range.len() as u32)));
+            assert!((1..=LEAF_MAX).contains(&(range.len() as u32)), "a leaf of {} primitives", range.len());
             let all_tris =
                 order[range.start as usize..range.end as usize].iter().all(|p| p.shape & TRIANGLE != 0);
             LEAF | if all_tris { TRI_LEAF } else { 0 }
@@ -1135,6 +1139,28 @@ impl Builder<'_> {
     }
 }
 
+/// Renumbers `b2`'s leaves of one primitive each (obvhs leaves them in the order of its
+/// input) in the order a depth-first walk meets them, so that a subtree's primitives are one
+/// run of its order, as `merge_triangle_leaves` needs.
+fn leaves_in_tree_order(b2: &mut obvhs::bvh2::Bvh2) {
+    if b2.nodes.is_empty() {
+        return;
+    }
+    let mut order = Vec::with_capacity(b2.primitive_indices.len());
+    let mut todo = vec![0usize];
+    while let Some(n) = todo.pop() {
+        let node = b2.nodes[n];
+        if node.is_leaf() {
+            debug_assert_eq!(node.prim_count, 1);
+            b2.nodes[n].first_index = order.len() as u32;
+            order.push(b2.primitive_indices[node.first_index as usize]);
+        } else {
+            todo.extend([node.first_index as usize + 1, node.first_index as usize]);
+        }
+    }
+    b2.primitive_indices = order;
+}
+
 /// Turns into one leaf each subtree of `b2` of at most [`LEAF_MAX`] triangles (`is_tri` of a
 /// primitive index) held in one run of its primitive order, where the SAH says so with the
 /// x86 kernels' costs: they test a leaf's triangles in four lanes at once, so a leaf costs the
@@ -1143,8 +1169,10 @@ impl Builder<'_> {
 /// at most that sum: the two triangles of a rectangle, whose boxes are both the rectangle's,
 /// become one leaf tested once instead of two (obvhs' SAH, which prices a leaf by its count,
 /// keeps them apart). Leaves only grow; a merged node's former children stay, unreached. The
-/// portable kernel's leaves cost by count, but the tree is the same on every target.
-fn merge_triangle_leaves(b2: &mut obvhs::bvh2::Bvh2, is_tri: impl Fn(u32) -> bool) {
+/// portable kernel's leaves cost by count, but the tree is the same on every target. With
+/// `pieces` (a tree over fibre pieces, whose leaves obvhs leaves one primitive each) every
+/// such subtree becomes a leaf, as obvhs' own collapse joins nearly all of them in other trees.
+fn merge_triangle_leaves(b2: &mut obvhs::bvh2::Bvh2, pieces: bool, is_tri: impl Fn(u32) -> bool) {
     let nodes = &mut b2.nodes;
     if nodes.is_empty() {
         return;
@@ -1172,7 +1200,10 @@ fn merge_triangle_leaves(b2: &mut obvhs::bvh2::Bvh2, is_tri: impl Fn(u32) -> boo
         let (lo, hi) = if na.first_index < nb.first_index { (na, nb) } else { (nb, na) };
         let count = na.prim_count + nb.prim_count;
         let area = node.aabb().half_area();
-        if count <= LEAF_MAX && lo.first_index + lo.prim_count == hi.first_index && area <= ca + cb {
+        if count <= LEAF_MAX
+            && lo.first_index + lo.prim_count == hi.first_index
+            && (pieces || area <= ca + cb)
+        {
             nodes[n].prim_count = count;
             nodes[n].first_index = lo.first_index;
             cost[n] = Some(area);
@@ -3011,9 +3042,12 @@ mod tests {
     }
 
     /// A tree mostly of fibres builds over pieces of up to `PIECE` joined segments of one
-    /// fibre: whole and in batches (of 7 and 40 pieces), every fibre leaf holds one piece,
-    /// every segment is in one leaf, and every kernel finds what testing every segment and
-    /// triangle finds. The fibres have 1 to 8 segments, so pieces end where fibres do.
+    /// fibre, whole and in batches: every fibre leaf holds exactly one piece (each fibre cut
+    /// from its root into pieces of 3 and what is left), and every kernel finds what testing
+    /// every segment and triangle finds. The fibres have 1 to 8 segments, so pieces end where
+    /// fibres do. With 20 triangles beside the 540 segments, and with exactly as many triangles
+    /// as segments (still a tree of pieces), where triangle subtrees must still join into
+    /// leaves of up to four.
     #[test]
     fn fibre_pieces_stay_whole_in_leaves_and_find_what_brute_force_finds() {
         use crate::geometry::curves::Curves;
@@ -3026,73 +3060,91 @@ mod tests {
                 (0..2 + i % 8).map(|k| (root + dir * (0.05 * k as f32), 0.01)).collect()
             })
             .collect();
+        let mut pieces = Vec::new(); // (first segment, segments) of every piece
+        let mut first = 0;
+        for c in &curves {
+            let n = c.len() as u32 - 1;
+            pieces.extend((0..n).step_by(PIECE as usize).map(|k| (first + k, PIECE.min(n - k))));
+            first += n;
+        }
         let fur = Curves::linear(&curves);
         let segments = fur.segments.len();
-        let shapes = vec![soup(20, 3).remove(0), shape(Geometry::Curves(fur), "fur")];
-        let Geometry::Mesh(mesh) = &shapes[0].geometry else { unreachable!() };
-        let Geometry::Curves(fur) = &shapes[1].geometry else { unreachable!() };
-        assert!(2 * segments >= segments + mesh.tris.len(), "mostly fibres");
-        for batch in [BATCH, 40, 7] {
-            let mut accel = Accel::build_in_batches(&shapes, &[], batch);
-            let mut seen = vec![0u32; segments];
-            for node in &accel.nodes {
-                for (lane, &c) in node.child.iter().enumerate() {
-                    if node.used >> lane & 1 == 0 || c & LEAF == 0 {
-                        continue;
-                    }
-                    let (first, count) = ((c & FIRST) as usize, ((c >> FIRST_BITS) & 3) as usize + 1);
-                    let prims = &accel.prims[first..first + count];
-                    if prims.iter().all(|p| p.shape & CURVE == 0) {
-                        continue;
-                    }
-                    assert!(count <= PIECE as usize, "batch {batch}: a leaf of {count} with fibres");
-                    for (j, p) in prims.iter().enumerate() {
-                        assert_eq!(
-                            p.shape & !PLANAR,
-                            1 | CURVE,
-                            "batch {batch}: a fibre leaf holds only fibres"
-                        );
-                        assert_eq!(p.index, prims[0].index + j as u32, "batch {batch}: consecutive");
-                        if j > 0 {
-                            assert!(fur.joined_to_next(p.index as usize - 1), "batch {batch}: one fibre");
+        assert_eq!(first as usize, segments);
+        for (triangles, batches) in [(20, vec![BATCH, 40, 7]), (segments, vec![BATCH, 60])] {
+            let shapes = vec![soup(triangles, 3).remove(0), shape(Geometry::Curves(fur.clone()), "fur")];
+            let Geometry::Mesh(mesh) = &shapes[0].geometry else { unreachable!() };
+            let Geometry::Curves(fur) = &shapes[1].geometry else { unreachable!() };
+            for batch in batches {
+                let what = format!("{triangles} triangles, batch {batch}");
+                let mut accel = Accel::build_in_batches(&shapes, &[], batch);
+                let (mut leaves, mut joined_triangles) = (Vec::new(), 0);
+                for node in &accel.nodes {
+                    for (lane, &c) in node.child.iter().enumerate() {
+                        if node.used >> lane & 1 == 0 || c & LEAF == 0 {
+                            continue;
                         }
-                        seen[p.index as usize] += 1;
+                        let (first, count) = ((c & FIRST) as usize, ((c >> FIRST_BITS) & 3) + 1);
+                        let prims = &accel.prims[first..first + count as usize];
+                        if prims.iter().all(|p| p.shape & CURVE == 0) {
+                            joined_triangles += (count > 1) as u32;
+                            continue;
+                        }
+                        for (j, p) in prims.iter().enumerate() {
+                            assert_eq!(
+                                p.shape & !PLANAR,
+                                1 | CURVE,
+                                "{what}: a fibre leaf holds only fibres"
+                            );
+                            assert_eq!(p.index, prims[0].index + j as u32, "{what}: consecutive");
+                        }
+                        leaves.push((prims[0].index, count));
                     }
                 }
+                leaves.sort_unstable();
+                assert_eq!(leaves, pieces, "{what}: a leaf a piece");
+                if triangles == segments {
+                    assert!(
+                        joined_triangles > triangles as u32 / 8,
+                        "{what}: {joined_triangles} joined leaves"
+                    );
+                }
+                let mut fibre_hits = 0;
+                for ray_index in 0..1000 {
+                    let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 3.0 - 1.0;
+                    let target = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s));
+                    let mut ray = Ray::new(o, (target - o).normalize_or(Vec3::X));
+                    if ray_index % 3 == 0 {
+                        ray.tmax = 1.5;
+                    }
+                    let pre = RayPre::new(ray.d);
+                    let mut brute = f32::INFINITY;
+                    for i in 0..mesh.tris.len() {
+                        let [a, b, c] = mesh.tri(i);
+                        if let Some((t, ..)) = intersect_triangle(&ray, &pre, ray.tmax, a, b, c) {
+                            brute = brute.min(t);
+                        }
+                    }
+                    let mut on_fibre = false;
+                    for i in 0..segments {
+                        if let Some(h) = fur.intersect(i, ray.o, ray.d, ray.tmin, ray.tmax.min(brute)) {
+                            (brute, on_fibre) = (brute.min(h.t), true);
+                        }
+                    }
+                    fibre_hits += on_fibre as u32;
+                    let brute = (brute < ray.tmax).then_some(brute);
+                    for kernel in Kernel::available() {
+                        accel.set_kernel(kernel);
+                        let hit = accel.intersect(&shapes, &ray).map(|it| it.t);
+                        assert_eq!(hit, brute, "{kernel:?}, {what}, ray {ray_index}");
+                        assert_eq!(
+                            accel.occluded(&shapes, &ray),
+                            brute.is_some(),
+                            "{kernel:?}, {what}, ray {ray_index}"
+                        );
+                    }
+                }
+                assert!(fibre_hits > 100, "{what}: {fibre_hits} rays hit a fibre first");
             }
-            assert!(seen.iter().all(|&n| n == 1), "batch {batch}: every segment in one leaf");
-            let mut fibre_hits = 0;
-            for ray_index in 0..2000 {
-                let o = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 3.0 - 1.0;
-                let target = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s));
-                let mut ray = Ray::new(o, (target - o).normalize_or(Vec3::X));
-                if ray_index % 3 == 0 {
-                    ray.tmax = 1.5;
-                }
-                let pre = RayPre::new(ray.d);
-                let mut brute = f32::INFINITY;
-                for i in 0..mesh.tris.len() {
-                    let [a, b, c] = mesh.tri(i);
-                    if let Some((t, ..)) = intersect_triangle(&ray, &pre, ray.tmax, a, b, c) {
-                        brute = brute.min(t);
-                    }
-                }
-                let mut on_fibre = false;
-                for i in 0..segments {
-                    if let Some(h) = fur.intersect(i, ray.o, ray.d, ray.tmin, ray.tmax.min(brute)) {
-                        (brute, on_fibre) = (brute.min(h.t), true);
-                    }
-                }
-                fibre_hits += on_fibre as u32;
-                let brute = (brute < ray.tmax).then_some(brute);
-                for kernel in Kernel::available() {
-                    accel.set_kernel(kernel);
-                    let hit = accel.intersect(&shapes, &ray).map(|it| it.t);
-                    assert_eq!(hit, brute, "{kernel:?}, batch {batch}, ray {ray_index}");
-                    assert_eq!(accel.occluded(&shapes, &ray), brute.is_some(), "{kernel:?}, ray {ray_index}");
-                }
-            }
-            assert!(fibre_hits > 300, "batch {batch}: {fibre_hits} rays hit a fibre first");
         }
     }
 
