@@ -1008,6 +1008,8 @@ pub const BATCH: usize = 1 << 18;
 /// The wide tree being built: its nodes (node 0 is the root) and its primitives in leaf order.
 struct Builder<'a> {
     shapes: &'a [Shape],
+    /// Whether the tree is built over fibre pieces ([`PIECE`]), one a leaf.
+    pieces: bool,
     nodes: Vec<Node>,
     prims: Vec<PrimRef>,
     tris: LeafTris,
@@ -1021,11 +1023,10 @@ impl Builder<'_> {
         let aabbs: Vec<Aabb> = units.iter().map(|u| unit_bounds(shapes, u)).collect();
         let mut bvh2 = build_bvh2(&aabbs, params, &mut Default::default());
         drop(aabbs);
-        let pieces = params.max_prims_per_leaf == 1;
-        if pieces {
+        if self.pieces {
             leaves_in_tree_order(&mut bvh2);
         }
-        merge_triangle_leaves(&mut bvh2, pieces, |k| units[k as usize].first.shape & TRIANGLE != 0);
+        merge_triangle_leaves(&mut bvh2, self.pieces, |k| units[k as usize].first.shape & TRIANGLE != 0);
         // Each unit's primitives in leaf order; `start[i]` is where the unit at position `i`
         // of the tree's order begins among them.
         let mut order = Vec::with_capacity(units.iter().map(|u| u.len as usize).sum());
@@ -1293,6 +1294,15 @@ fn fibre_share(shapes: &[Shape], members: &[u32]) -> (usize, bool) {
     (fibres, 2 * fibres >= count)
 }
 
+/// The shapes of the top-level tree: those in no group.
+fn top_level(shapes: &[Shape], groups: &[Vec<u32>]) -> Vec<u32> {
+    let mut member = vec![false; shapes.len()];
+    for &s in groups.iter().flatten() {
+        member[s as usize] = true;
+    }
+    (0..shapes.len() as u32).filter(|&s| !member[s as usize]).collect()
+}
+
 /// What the builder takes as primitives for a tree over `members` ([`Unit`]): with `pieces`,
 /// each fibre in pieces of up to [`PIECE`] joined segments; every other primitive alone.
 fn units_of<'a>(
@@ -1344,11 +1354,7 @@ impl Accel {
     /// groups, over all their trees ([`Unit`]: pieces of fibres in trees mostly of fibres), and
     /// the most in one tree: what its scratch memory follows.
     pub fn build_units(shapes: &[Shape], groups: &[Vec<u32>]) -> (usize, usize) {
-        let mut member = vec![false; shapes.len()];
-        for &s in groups.iter().flatten() {
-            member[s as usize] = true;
-        }
-        let top: Vec<u32> = (0..shapes.len() as u32).filter(|&s| !member[s as usize]).collect();
+        let top = top_level(shapes, groups);
         let counts: Vec<usize> = std::iter::once(&top)
             .chain(groups)
             .map(|m| units_of(shapes, m, fibre_share(shapes, m).1).count())
@@ -1358,10 +1364,8 @@ impl Accel {
 
     /// [`Accel::build_grouped`] with bottom-level trees of at most `batch` primitives.
     fn build_in_batches(shapes: &[Shape], groups: &[Vec<u32>], batch: usize) -> Accel {
-        let mut member = vec![false; shapes.len()];
         for &s in groups.iter().flatten() {
             assert!(!matches!(shapes[s as usize].geometry, Geometry::Instance(_)), "nested instancing");
-            member[s as usize] = true;
         }
         for s in shapes {
             if let Geometry::Instance(i) = &s.geometry {
@@ -1373,8 +1377,7 @@ impl Accel {
                 );
             }
         }
-        let top: Vec<u32> = (0..shapes.len() as u32).filter(|&s| !member[s as usize]).collect();
-        let mut accel = Accel::build_over(shapes, &top, batch);
+        let mut accel = Accel::build_over(shapes, &top_level(shapes, groups), batch);
         accel.groups = groups.iter().map(|g| Accel::build_over(shapes, g, batch)).collect();
         let nodes = accel.nodes.len() + accel.groups.iter().map(|g| g.nodes.len()).sum::<usize>();
         if nodes * std::mem::size_of::<FlatNode>() <= FLAT_BYTES {
@@ -1416,6 +1419,7 @@ impl Accel {
         let units = || units_of(shapes, members, mostly_fibres);
         let mut b = Builder {
             shapes,
+            pieces: mostly_fibres,
             nodes: vec![EMPTY_NODE],
             prims: Vec::with_capacity(count),
             tris: LeafTris::default(),
@@ -1450,8 +1454,7 @@ impl Accel {
         // fibre segment against 16) and once rendered hair.xml 5% faster; measured again at
         // issue 15's twenty-fifth step, neither 1 nor 2 for fibre trees was faster on hair.xml or
         // whimsical.xml (docs/BENCHMARKS.md). 3 is 15% slower on cbox. A tree of fibre
-        // pieces holds one piece a leaf; its triangles are then joined into leaves only where
-        // `merge_triangle_leaves` finds that cheaper.
+        // pieces holds one piece a leaf; `merge_triangle_leaves` then joins its triangles.
         params.max_prims_per_leaf = if mostly_fibres { LEAF_MAX / PIECE } else { LEAF_MAX };
         params.collapse_traversal_cost = 2.0;
         let unit_count = units().count();
