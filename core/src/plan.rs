@@ -103,6 +103,21 @@ impl PlanDescription {
             ),
             "intersect (8-wide BVH)".to_string(),
         ];
+        let spheres: Vec<bool> = scene
+            .shapes
+            .iter()
+            .filter_map(|s| match &s.geometry {
+                crate::geometry::Geometry::Sphere(b) => Some(b.tangents),
+                _ => None,
+            })
+            .collect();
+        if !spheres.is_empty() {
+            let read = spheres.iter().filter(|&&t| t).count();
+            stages.push(format!(
+                "spheres: uv and tangents at hits for {read} of {} (where a texture, anisotropy or hair reads them)",
+                spheres.len()
+            ));
+        }
         if t.light_sampling {
             let kinds: Vec<&str> = LightKind::ALL
                 .into_iter()

@@ -138,6 +138,28 @@ impl Bsdf {
         }
     }
 
+    /// Whether the BSDF's value at a hit depends on more than the normal: a texture that is not
+    /// constant (read at the hit's uv), or the tangent (anisotropic roughness; hair, whose x
+    /// axis runs along the fibre). A sphere whose BSDF and emitter do not computes no uv or
+    /// tangents ([`crate::geometry::Sphere::tangents`]).
+    pub fn reads_surface(&self) -> bool {
+        let anisotropic = |r: Option<&Roughness>| {
+            r.is_some_and(|r| match (&r.alpha_u, &r.alpha_v) {
+                (Texture::Const(a), Texture::Const(b)) => a != b,
+                _ => true,
+            })
+        };
+        self.textures().iter().any(|t| !t.is_const())
+            || match self {
+                Bsdf::Hair(_) => true,
+                Bsdf::TwoSided { front, back } => front.reads_surface() || back.reads_surface(),
+                Bsdf::Conductor(c) => anisotropic(c.rough.as_ref()),
+                Bsdf::Dielectric(d) => anisotropic(d.rough.as_ref()),
+                Bsdf::Plastic(p) => anisotropic(p.rough.as_ref().map(|r| &r.roughness)),
+                Bsdf::Diffuse { .. } => false,
+            }
+    }
+
     /// Every texture the BSDF reads.
     pub fn textures(&self) -> Vec<&Texture> {
         match self {

@@ -2710,7 +2710,8 @@ mod tests {
         let mut s = ball_seed;
         for k in 0..150 {
             let center = Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) * 10.0;
-            let ball = crate::geometry::Sphere { center, radius: 0.15, rot: glam::Mat3::IDENTITY };
+            let ball =
+                crate::geometry::Sphere { center, radius: 0.15, rot: glam::Mat3::IDENTITY, tangents: true };
             shapes.push(shape(Geometry::Sphere(ball), &format!("ball {k}")));
         }
         shapes
@@ -2952,7 +2953,12 @@ mod tests {
         let sphere = |c: Vec3, r: f32, flip: bool| Shape {
             flip_normals: flip,
             ..shape(
-                Geometry::Sphere(super::super::Sphere { center: c, radius: r, rot: glam::Mat3::IDENTITY }),
+                Geometry::Sphere(super::super::Sphere {
+                    center: c,
+                    radius: r,
+                    rot: glam::Mat3::IDENTITY,
+                    tangents: true,
+                }),
                 "ball",
             )
         };
@@ -3455,8 +3461,10 @@ mod tests {
     fn rays_leaving_an_instanced_surface_do_not_find_it_again() {
         use crate::geometry::{Instance, Sphere};
         use glam::{Mat3, Mat4, Quat};
-        let sphere =
-            shape(Geometry::Sphere(Sphere { center: Vec3::ZERO, radius: 1.0, rot: Mat3::IDENTITY }), "ball");
+        let sphere = shape(
+            Geometry::Sphere(Sphere { center: Vec3::ZERO, radius: 1.0, rot: Mat3::IDENTITY, tangents: true }),
+            "ball",
+        );
         let m = Mat4::from_translation(Vec3::new(1000.0, 2000.0, -500.0))
             * Mat4::from_quat(Quat::from_rotation_z(0.6))
             * Mat4::from_scale(Vec3::new(3.0, 0.5, 1.0));

@@ -193,6 +193,12 @@ impl Light {
         }
     }
 
+    /// Whether the light reads the uv of the points it emits from (an area light's radiance
+    /// texture).
+    pub fn reads_surface(&self) -> bool {
+        matches!(self, Light::Area { radiance, .. } if !radiance.is_const())
+    }
+
     /// Lights that escaped rays can hit (not the delta `directional`).
     pub fn is_infinite(&self) -> bool {
         matches!(self, Light::Constant { .. } | Light::Envmap(_))

@@ -239,6 +239,13 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
 
     let infinite_lights =
         (0..b.lights.len() as u32).filter(|&i| b.lights[i as usize].is_infinite()).collect();
+    // A sphere computes uv and tangents at a hit only for a BSDF or emitter that reads them.
+    for shape in &mut b.shapes {
+        if let Geometry::Sphere(s) = &mut shape.geometry {
+            let emitter = shape.light.is_some_and(|l| b.lights[l as usize].reads_surface());
+            s.tangents = b.bsdfs[shape.bsdf as usize].reads_surface() || emitter;
+        }
+    }
     let prims: u64 = b.shapes.iter().map(|s| s.prim_count() as u64).sum();
     let (units, most) = Accel::build_units(&b.shapes, &b.groups);
     let flat = prims.saturating_mul(FLAT_PER_PRIM).min(crate::geometry::bvh::FLAT_BYTES as u64);
