@@ -114,7 +114,7 @@ impl PlanDescription {
         if !spheres.is_empty() {
             let read = spheres.iter().filter(|&&t| t).count();
             stages.push(format!(
-                "spheres: uv and tangents at hits for {read} of {} (where a texture, anisotropy or hair reads them)",
+                "spheres: uv and tangents at hits for {read} of {} (where a texture, anisotropy, hair or an emitter's texture reads them)",
                 spheres.len()
             ));
         }

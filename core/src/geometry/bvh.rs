@@ -1163,10 +1163,13 @@ impl SlotPlan {
                 todo.extend([(n, true), (a, false), (b, false)]);
                 continue;
             }
-            // `spread[j - 1]`: the least cost of the two children sharing `j` slots.
+            // `spread[j - 1]`: the least cost of the two children sharing `j` slots. (Each
+            // starts from the split (1, j - 1), so that a split is always made, whatever the
+            // areas: an infinite or NaN one would otherwise leave none.)
             let mut spread = [(f32::INFINITY, 0u8); WIDTH];
             for j in 2..=WIDTH {
-                for k in 1..j {
+                spread[j - 1] = (plan.cost[a][0] + plan.cost[b][j - 2], (1 | (j - 1) << 4) as u8);
+                for k in 2..j {
                     let c = plan.cost[a][k - 1] + plan.cost[b][j - k - 1];
                     if c < spread[j - 1].0 {
                         spread[j - 1] = (c, (k | (j - k) << 4) as u8);
@@ -2472,16 +2475,21 @@ mod tests {
         (*s >> 40) as f32 / (1u64 << 24) as f32
     }
 
-    /// The wide nodes a collapse makes (the binary nodes it opens), from the root.
+    /// The wide nodes a collapse makes (the binary nodes it opens), from the root; checks that
+    /// each has 2 to WIDTH children and that every leaf is some wide node's child exactly once.
     fn opened(b2: &[obvhs::bvh2::node::Bvh2Node], plan: &SlotPlan) -> Vec<usize> {
-        let (mut wide, mut todo) = (Vec::new(), vec![0usize]);
+        let (mut wide, mut todo, mut leaves) = (Vec::new(), vec![0usize], Vec::new());
         while let Some(n) = todo.pop() {
             wide.push(n);
             let mut kids = Vec::new();
             plan.open(b2, n, &mut kids);
             assert!((2..=WIDTH).contains(&kids.len()), "a wide node of {} children", kids.len());
+            leaves.extend(kids.iter().copied().filter(|&k| b2[k].is_leaf()));
             todo.extend(kids.into_iter().filter(|&k| !b2[k].is_leaf()));
         }
+        leaves.sort_unstable();
+        let all: Vec<usize> = (0..b2.len()).filter(|&k| b2[k].is_leaf()).collect();
+        assert_eq!(leaves, all, "every leaf once");
         wide
     }
 
@@ -2561,6 +2569,23 @@ mod tests {
             beaten_greedy += usize::from(cost < greedy * (1.0 - 1e-4));
         }
         assert!(beaten_greedy > 0, "no tree where the greedy collapse was worse: the test tests nothing new");
+
+        // Areas that are infinite or NaN (boxes past f32's range) still give a valid wide tree.
+        let mut params = BvhBuildParams::medium_build();
+        params.max_prims_per_leaf = 1;
+        let boxes: Vec<Aabb> = (0..40)
+            .map(|i| {
+                let c = Vec3A::splat(i as f32);
+                let e = if i % 3 == 0 { Vec3A::splat(f32::MAX) } else { Vec3A::splat(0.5) };
+                Aabb::new(c - e, c + e)
+            })
+            .collect();
+        let mut b2 = build_bvh2(&boxes, params, &mut Default::default()).nodes;
+        for node in b2.iter_mut().step_by(5) {
+            node.aabb.max.x = f32::NAN;
+        }
+        let plan = SlotPlan::of(&b2);
+        assert!(opened(&b2, &plan).len() >= 40 / WIDTH);
     }
 
     /// A soup of random triangles of mixed sizes, a fifth of them perpendicular to an axis.
