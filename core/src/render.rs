@@ -377,9 +377,12 @@ mod tests {
             }
         }
         // A stop that comes while the bands render gives nothing or the whole region, never a
-        // region with bands missing (a worker would upload it as complete).
+        // region with bands missing (a worker would upload it as complete). The region takes
+        // tens of milliseconds, so that a stop sent at once lands during it even on a loaded
+        // machine (at 32 x 32 x 2 samples a busy scheduler could start the stopping thread
+        // only after the render had finished, and no render was stopped).
         let scene = Scene::load(&dir.join("cbox.xml"), &[]).expect("cbox");
-        let r = Region { x0: 100, y0: 100, x1: 132, y1: 132, s0: 0, s1: 2 };
+        let r = Region { x0: 96, y0: 96, x1: 160, y1: 160, s0: 0, s1: 16 };
         let alone = render_region(&scene, &r, 5);
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().expect("pool");
         let (mut stopped, mut whole) = (0, 0);
@@ -387,7 +390,7 @@ mod tests {
             let stop = AtomicBool::new(false);
             let got = std::thread::scope(|s| {
                 s.spawn(|| {
-                    std::thread::sleep(std::time::Duration::from_micros(k * k * 40));
+                    std::thread::sleep(std::time::Duration::from_micros(k * k * 150));
                     stop.store(true, std::sync::atomic::Ordering::Relaxed);
                 });
                 render_region_on(&pool, &scene, &r, 5, &stop)
@@ -395,7 +398,7 @@ mod tests {
             match got {
                 None => stopped += 1,
                 Some(got) => {
-                    assert_same(&got, &alone, &format!("stopped after {} us", k * k * 40));
+                    assert_same(&got, &alone, &format!("stopped after {} us", k * k * 150));
                     whole += 1;
                 }
             }
