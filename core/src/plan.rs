@@ -103,19 +103,16 @@ impl PlanDescription {
             ),
             "intersect (8-wide BVH)".to_string(),
         ];
-        let spheres: Vec<bool> = scene
-            .shapes
-            .iter()
-            .filter_map(|s| match &s.geometry {
-                crate::geometry::Geometry::Sphere(b) => Some(b.tangents),
-                _ => None,
-            })
-            .collect();
-        if !spheres.is_empty() {
-            let read = spheres.iter().filter(|&&t| t).count();
+        let (mut spheres, mut read) = (0, 0);
+        for s in &scene.shapes {
+            if let crate::geometry::Geometry::Sphere(b) = &s.geometry {
+                spheres += 1;
+                read += usize::from(b.tangents);
+            }
+        }
+        if spheres > 0 {
             stages.push(format!(
-                "spheres: uv and tangents at hits for {read} of {} (where a texture, anisotropy, hair or an emitter's texture reads them)",
-                spheres.len()
+                "spheres: uv and tangents at hits for {read} of {spheres} (where a texture, anisotropy, hair or an emitter's texture reads them)"
             ));
         }
         if t.light_sampling {

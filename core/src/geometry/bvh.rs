@@ -1194,20 +1194,21 @@ impl SlotPlan {
 
     /// Appends the children of inner node `n` as a wide node: the binary nodes its slots hold.
     fn open(&self, b2: &[obvhs::bvh2::node::Bvh2Node], n: usize, kids: &mut Vec<usize>) {
-        let s = self.split[n][0];
-        let first = b2[n].first_index as usize;
-        self.fill(b2, first, (s & 15) as usize, kids);
-        self.fill(b2, first + 1, (s >> 4) as usize, kids);
+        self.share(b2, n, self.split[n][0], kids);
     }
 
+    /// Appends what inner node `n`'s two children hold, sharing slots by `split`.
+    fn share(&self, b2: &[obvhs::bvh2::node::Bvh2Node], n: usize, split: u8, kids: &mut Vec<usize>) {
+        let first = b2[n].first_index as usize;
+        self.fill(b2, first, (split & 15) as usize, kids);
+        self.fill(b2, first + 1, (split >> 4) as usize, kids);
+    }
+
+    /// Appends what node `n` holds given `slots` slots: itself, or its children's share.
     fn fill(&self, b2: &[obvhs::bvh2::node::Bvh2Node], n: usize, slots: usize, kids: &mut Vec<usize>) {
-        let s = if b2[n].is_leaf() { 0 } else { self.split[n][slots - 1] };
-        if slots == 1 || s == 0 {
-            kids.push(n);
-        } else {
-            let first = b2[n].first_index as usize;
-            self.fill(b2, first, (s & 15) as usize, kids);
-            self.fill(b2, first + 1, (s >> 4) as usize, kids);
+        match if slots == 1 || b2[n].is_leaf() { 0 } else { self.split[n][slots - 1] } {
+            0 => kids.push(n),
+            split => self.share(b2, n, split, kids),
         }
     }
 }

@@ -347,30 +347,18 @@ impl Shape {
                 let p = s.center + n * s.radius;
                 let p_err = (s.center.abs() + (n * s.radius).abs()) * gamma(6);
                 if !s.tangents {
-                    let n = if self.flip_normals { -n } else { n };
-                    return Interaction {
-                        p,
-                        p_err,
-                        t,
-                        ng: n,
-                        frame: Frame::from_normal(n),
-                        uv: Vec2::ZERO,
-                        dpdu: Vec3::ZERO,
-                        dpdv: Vec3::ZERO,
-                        shape,
-                        prim: prim as u32,
-                        piece: None,
-                        instance: None,
-                    };
+                    // Zero tangents: the frame below is then built around the normal alone.
+                    (p, p_err, n, n, Vec2::ZERO, Vec3::ZERO, Vec3::ZERO)
+                } else {
+                    let l = s.rot * n;
+                    let uv = s.uv(n);
+                    let dpdu = s.rot.transpose() * Vec3::new(-l.y, l.x, 0.0) * (2.0 * PI * s.radius);
+                    // v = theta / pi: dp/dv = pi r (cos theta cos phi, cos theta sin phi, -sin theta).
+                    let rxy = (l.x * l.x + l.y * l.y).sqrt();
+                    let (cp, sp) = if rxy > 0.0 { (l.x / rxy, l.y / rxy) } else { (1.0, 0.0) };
+                    let dpdv = s.rot.transpose() * Vec3::new(l.z * cp, l.z * sp, -rxy) * (PI * s.radius);
+                    (p, p_err, n, n, uv, dpdu, dpdv)
                 }
-                let l = s.rot * n;
-                let uv = s.uv(n);
-                let dpdu = s.rot.transpose() * Vec3::new(-l.y, l.x, 0.0) * (2.0 * PI * s.radius);
-                // v = theta / pi: dp/dv = pi r (cos theta cos phi, cos theta sin phi, -sin theta).
-                let rxy = (l.x * l.x + l.y * l.y).sqrt();
-                let (cp, sp) = if rxy > 0.0 { (l.x / rxy, l.y / rxy) } else { (1.0, 0.0) };
-                let dpdv = s.rot.transpose() * Vec3::new(l.z * cp, l.z * sp, -rxy) * (PI * s.radius);
-                (p, p_err, n, n, uv, dpdu, dpdv)
             }
             Geometry::Disk(d) => {
                 let (p, p_err) = d.point(aux.x, aux.y);
