@@ -79,6 +79,7 @@ enum Ablation {
     NoMisCompensation,
     UniformEnvironment,
     DiffuseInsteadOfHair,
+    NoLightCutoff,
     TextureFilter(FilterType),
     MaxDepth(u32),
 }
@@ -100,6 +101,9 @@ impl Ablation {
             if scene.lights.iter().any(Light::is_compensated) {
                 all.push(Ablation::NoMisCompensation);
             }
+        }
+        if t.light_sampling && t.light_cutoff > 0.0 {
+            all.push(Ablation::NoLightCutoff);
         }
         if scene.has_light(LightKind::Envmap) {
             all.push(Ablation::UniformEnvironment);
@@ -129,6 +133,7 @@ impl Ablation {
             Ablation::NoMisCompensation => "no MIS compensation".into(),
             Ablation::UniformEnvironment => "environment sampled uniformly".into(),
             Ablation::DiffuseInsteadOfHair => "diffuse instead of hair".into(),
+            Ablation::NoLightCutoff => "every light sample's shadow ray traced (no cutoff)".into(),
             Ablation::TextureFilter(f) => format!("texture filter {}", f.name()),
             Ablation::MaxDepth(d) => format!("max_depth {d}"),
         }
@@ -165,6 +170,7 @@ impl Ablation {
                 s.techniques.mis = false;
             }
             Ablation::NoMisCompensation => s.disable_mis_compensation(),
+            Ablation::NoLightCutoff => s.techniques.light_cutoff = 0.0,
             Ablation::UniformEnvironment => {
                 for l in &mut s.lights {
                     if let Light::Envmap(e) = l {
@@ -405,9 +411,9 @@ mod tests {
             Ablation::for_scene(&scene("cbox.xml")),
             [AsScene, BsdfSamplingOnly, LightSamplingOnly, MaxDepth(2), MaxDepth(3)]
         );
-        // hair: fibres under a compensated environment map.
+        // hair: fibres under a compensated environment map, a light-sample cutoff.
         let hair = Ablation::for_scene(&scene("hair.xml"));
-        for a in [NoMisCompensation, UniformEnvironment, DiffuseInsteadOfHair] {
+        for a in [NoMisCompensation, NoLightCutoff, UniformEnvironment, DiffuseInsteadOfHair] {
             assert!(hair.contains(&a), "{a:?} missing: {hair:?}");
         }
         assert!(!hair.iter().any(|a| matches!(a, TextureFilter(_))));
@@ -431,7 +437,13 @@ mod tests {
         assert_eq!(s.techniques, Techniques { light_sampling: false, mis: false, ..before });
         let mut s = scene("hair.xml");
         NoMisCompensation.apply(&mut s);
-        assert_eq!(s.techniques, before);
+        // The same techniques; the cutoff derived again, from the scene without compensation.
+        assert!(s.techniques.light_cutoff > 0.0);
+        assert_eq!(s.techniques, Techniques { light_cutoff: s.techniques.light_cutoff, ..before });
+        let mut off = scene("hair.xml");
+        NoLightCutoff.apply(&mut off);
+        assert_eq!(off.techniques, Techniques { light_cutoff: 0.0, ..before });
+        assert!(!off.describe().to_string().contains("before the shadow ray"));
         assert!(!s.describe().to_string().contains("MIS-compensated"));
         MaxDepth(2).apply(&mut s);
         assert_eq!(s.integrator.max_depth, 2);

@@ -912,3 +912,51 @@ fn spheres_compute_uv_and_tangents_only_where_read() {
     }
     assert!((means[0] / means[1] - 1.0).abs() < 0.01, "means {means:?}");
 }
+
+/// The light-sample cutoff (`Techniques::light_cutoff`, issue 15's thirty-second step): a
+/// scene whose preview leaves out enough shadow rays gets one (instances.xml, whose tuft of
+/// hair fibres absorbs), a scene whose preview does not gets none (cbox). It traces fewer
+/// shadow rays and keeps the expectation: instances.xml with the cutoff as derived, with
+/// none, and with one 30 times as high (a third of the scene's brightness: most light
+/// samples go through the roulette) agree on the image's mean, and each is within the
+/// reference test's bound. Without the roulette's 1 / q weight the high cutoff's mean falls
+/// far outside 1%; without the roulette the shadow rays do not fall.
+#[test]
+fn the_light_cutoff_traces_fewer_shadow_rays_and_keeps_the_expectation() {
+    let roulette = "Russian roulette before the shadow ray";
+    let cbox = load("cbox.xml", &[]);
+    assert_eq!(cbox.techniques.light_cutoff, 0.0, "cbox's preview leaves out too few shadow rays");
+    assert!(!cbox.describe().to_string().contains(roulette));
+    let derived = load("instances.xml", &[]);
+    let cutoff = derived.techniques.light_cutoff;
+    assert!(cutoff > 0.0, "instances.xml's fur gets a cutoff");
+    assert!(derived.describe().to_string().contains(roulette));
+    assert_eq!(load("instances.xml", &[]).techniques.light_cutoff, cutoff, "derived alike at every load");
+    let mut none = load("instances.xml", &[]);
+    none.techniques.light_cutoff = 0.0;
+    let mut high = load("instances.xml", &[]);
+    high.techniques.light_cutoff = 30.0 * cutoff;
+    let reference = common::reference("instances.exr");
+    let mut out = Vec::new();
+    for scene in [&none, &derived, &high] {
+        let (acc, st) = render(scene, 64, 0);
+        assert_eq!(acc.dropped.total(), 0);
+        let c = acc.develop().compare(&reference).expect("same size");
+        eprintln!(
+            "cutoff {}: relMSE {}, mean {}, shadow rays {}",
+            scene.techniques.light_cutoff, c.rel_mse, c.mean_lum, st.shadow_rays
+        );
+        // (instances_match_mitsuba_reference's bound: 0.75 x Mitsuba's median.)
+        assert!(
+            c.rel_mse <= 0.75 * 0.00821,
+            "cutoff {}: relMSE {}",
+            scene.techniques.light_cutoff,
+            c.rel_mse
+        );
+        out.push((c.mean_lum, st.shadow_rays));
+    }
+    let (m, rays) =
+        (out.iter().map(|o| o.0).collect::<Vec<_>>(), out.iter().map(|o| o.1).collect::<Vec<_>>());
+    assert!((m[1] / m[0] - 1.0).abs() < 0.002 && (m[2] / m[0] - 1.0).abs() < 0.01, "means {m:?}");
+    assert!(rays[1] < rays[0] * 9 / 10 && rays[2] < rays[1], "shadow rays {rays:?}");
+}

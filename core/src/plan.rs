@@ -19,7 +19,7 @@ use crate::scene::Scene;
 use crate::texture::{FilterType, Texture};
 
 /// The techniques the path tracer runs for a scene.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Techniques {
     /// Next-event estimation: some light is sampled (`Scene::sampled_lights`: not a
     /// MIS-compensated constant) and some BSDF is not purely specular.
@@ -34,7 +34,25 @@ pub struct Techniques {
     /// Camera rays carry differentials and first hits compute texture footprints (some
     /// texture is `trilinear` or `ewa`).
     pub footprints: bool,
+    /// Light samples that would add less than this luminance to their pixel go through
+    /// Russian roulette before their shadow ray: traced with probability (what they would
+    /// add) / cutoff, and weighted up by its inverse when traced, so that each adds the
+    /// cutoff or nothing. The expectation is unchanged; 0 (the default) traces every one.
+    /// [`Scene::derive_techniques`] sets it to [`LIGHT_CUTOFF`] of the scene's brightness.
+    pub light_cutoff: f32,
 }
+
+/// The light-sample cutoff ([`Techniques::light_cutoff`]) as a share of the scene's
+/// brightness ([`crate::render::preview`]): 1%. In fur, paths lose most of their throughput
+/// to absorption within a few bounces, and many of their shadow rays would add under it;
+/// docs/BENCHMARKS.md, "Issue 15, thirty-second step".
+pub const LIGHT_CUTOFF: f64 = 0.01;
+
+/// The share of shadow rays the cutoff must leave out of the scene's preview for a render to
+/// use it ([`crate::scene::Scene::derive_techniques`]). Its test costs about 30 instructions
+/// a light sample; the cheapest shadow ray about 300 (cbox's, callgrind), fur's thousands:
+/// at a fifth left out it pays in any scene.
+pub const CUTOFF_SAVES: f64 = 0.2;
 
 impl Techniques {
     pub fn derive(scene: &Scene) -> Techniques {
@@ -46,6 +64,7 @@ impl Techniques {
             mis,
             escaped_rays_lookup: !scene.infinite_lights.is_empty(),
             footprints: scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| t.wants_footprint()),
+            light_cutoff: 0.0,
         }
     }
 }
@@ -128,6 +147,12 @@ impl PlanDescription {
         }
         if t.mis {
             stages.push("MIS (power heuristic): BSDF sampling x light sampling".into());
+        }
+        if t.light_sampling && t.light_cutoff > 0.0 {
+            stages.push(format!(
+                "light samples adding under {:.3e} (1% of the scene's brightness) to a pixel: Russian roulette before the shadow ray",
+                t.light_cutoff
+            ));
         }
         let mut bsdfs: Vec<&'static str> = Vec::new();
         for b in &scene.bsdfs {

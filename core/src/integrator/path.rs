@@ -237,7 +237,28 @@ pub fn li(
                 let ls_wi = apart(ls.wi);
                 let wi = frame.to_local(ls_wi);
                 let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wo, wi);
-                if f != Rgb::ZERO {
+                let light_pdf = ls.pdf * sel_pdf;
+                let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
+                // What the sample adds to the pixel if the light is visible, looked up ahead
+                // of the shadow ray only where a cutoff asks for it (in fur most of the
+                // rays are blocked, and an environment map's lookup is a bilinear fetch).
+                let mut li = None;
+                // Russian roulette below the cutoff (`Techniques::light_cutoff`), on the
+                // path's roulette number: nothing about this sample depends on it, so the
+                // expectation is kept. (A NaN is traced, as before, for the film to count; a
+                // sample under 1e-20 of the cutoff is dropped, so that its weight stays
+                // finite.)
+                let mut keep = 1.0;
+                if f != Rgb::ZERO && plan.light_cutoff > 0.0 {
+                    let le = ls.li(light);
+                    li = Some(le);
+                    let c = crate::math::luminance(beta * f * le) * (w / light_pdf);
+                    if c < plan.light_cutoff {
+                        let q = c / plan.light_cutoff;
+                        keep = if q > 1e-20 && choices.get(s)[2] < q { 1.0 / q } else { 0.0 };
+                    }
+                }
+                if f != Rgb::ZERO && keep > 0.0 {
                     let shadow = match ls.target {
                         Some((t, dist)) => it.spawn_ray_to(ls_wi, apart(t), dist),
                         None => it.spawn_ray(ls_wi),
@@ -245,9 +266,8 @@ pub fn li(
                     st.shadow_rays += 1;
                     let from = scene.accel.spawned_from(&scene.shapes, &hit, &it, ls_wi);
                     if !scene.occluded_from(&shadow, from) {
-                        let light_pdf = ls.pdf * sel_pdf;
-                        let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
-                        l += beta * f * ls.li(light) * (w / light_pdf);
+                        let le = li.unwrap_or_else(|| ls.li(light));
+                        l += beta * f * le * (w / light_pdf * keep);
                     }
                 }
             }

@@ -282,7 +282,7 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         load_estimate: b.budget.peak,
     };
     scene.sampled_lights = super::sampled_lights(&scene.lights);
-    scene.techniques = Techniques::derive(&scene);
+    scene.derive_techniques();
     Ok(scene)
 }
 

@@ -176,7 +176,32 @@ impl Scene {
             l.disable_mis_compensation();
         }
         self.sampled_lights = sampled_lights(&self.lights);
+        self.derive_techniques();
+    }
+
+    /// Derives the techniques from the scene ([`Techniques::derive`]), and then the
+    /// light-sample cutoff: [`crate::plan::LIGHT_CUTOFF`] of the scene's brightness as those
+    /// techniques render it ([`crate::render::preview`]), kept where it leaves out at least
+    /// [`crate::plan::CUTOFF_SAVES`] of the preview's shadow rays (elsewhere its test would
+    /// cost more than it saves). Deterministic: every worker that loads the scene derives
+    /// the same cutoff.
+    pub fn derive_techniques(&mut self) {
         self.techniques = Techniques::derive(self);
+        if !self.techniques.light_sampling {
+            return;
+        }
+        let (brightness, all) = crate::render::preview(self);
+        let cutoff = (brightness * crate::plan::LIGHT_CUTOFF) as f32;
+        if !(cutoff > 0.0 && cutoff.is_finite()) {
+            return;
+        }
+        self.techniques.light_cutoff = cutoff;
+        let (_, traced) = crate::render::preview(self);
+        let saves = 1.0 - traced as f64 / all as f64;
+        tracing::debug!(brightness, cutoff, saves, "light-sample cutoff");
+        if !(saves >= crate::plan::CUTOFF_SAVES) {
+            self.techniques.light_cutoff = 0.0;
+        }
     }
 
     /// Whether the scene has a light of this kind.
