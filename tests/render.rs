@@ -932,6 +932,21 @@ fn the_light_cutoff_traces_fewer_shadow_rays_and_keeps_the_expectation() {
     assert!(cutoff > 0.0, "instances.xml's fur gets a cutoff");
     assert!(derived.describe().to_string().contains(roulette));
     assert_eq!(load("instances.xml", &[]).techniques.light_cutoff, cutoff, "derived alike at every load");
+    // A load without the BVH (the coordinator's) leaves the cutoff to the loads that render,
+    // and its plan says so.
+    let limits = furnace_core::LoadLimits { accel: false, ..Default::default() };
+    let bare = furnace_core::Scene::load_with(&common::scenes().join("instances.xml"), &[], &limits)
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert!(bare.techniques.light_cutoff == 0.0 && bare.techniques.light_cutoff_pending);
+    assert!(bare.describe().to_string().contains("derived from a preview where the scene is rendered"));
+    // A crop window renders with the whole film's cutoff.
+    let cropped = load_str(
+        &std::fs::read_to_string(common::scenes().join("instances.xml"))
+            .expect("instances.xml")
+            .replace(r#"<film type="hdrfilm">"#, r#"<film type="hdrfilm"><integer name="crop_width" value="40"/><integer name="crop_height" value="30"/>"#),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((cropped.film.crop_width, cropped.techniques.light_cutoff), (40, cutoff));
     let mut none = load("instances.xml", &[]);
     none.techniques.light_cutoff = 0.0;
     let mut high = load("instances.xml", &[]);

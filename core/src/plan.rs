@@ -40,6 +40,9 @@ pub struct Techniques {
     /// cutoff or nothing. The expectation is unchanged; 0 (the default) traces every one.
     /// [`Scene::derive_techniques`] sets it to [`LIGHT_CUTOFF`] of the scene's brightness.
     pub light_cutoff: f32,
+    /// The scene was loaded without its BVH (to be checked and planned, not rendered): the
+    /// loads that render it derive the cutoff.
+    pub light_cutoff_pending: bool,
 }
 
 /// The light-sample cutoff ([`Techniques::light_cutoff`]) as a share of the scene's
@@ -50,7 +53,8 @@ pub const LIGHT_CUTOFF: f64 = 0.01;
 
 /// The share of shadow rays the cutoff must leave out of the scene's preview for a render to
 /// use it ([`crate::scene::Scene::derive_techniques`]). Its test costs about 30 instructions
-/// a light sample; the cheapest shadow ray about 300 (cbox's, callgrind), fur's thousands:
+/// a light sample (and, for an environment map, the radiance lookup of samples whose shadow
+/// ray is blocked); the cheapest shadow ray about 300 (cbox's, callgrind), fur's thousands:
 /// at a fifth left out it pays in any scene.
 pub const CUTOFF_SAVES: f64 = 0.2;
 
@@ -65,6 +69,7 @@ impl Techniques {
             escaped_rays_lookup: !scene.infinite_lights.is_empty(),
             footprints: scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| t.wants_footprint()),
             light_cutoff: 0.0,
+            light_cutoff_pending: false,
         }
     }
 }
@@ -150,9 +155,16 @@ impl PlanDescription {
         }
         if t.light_sampling && t.light_cutoff > 0.0 {
             stages.push(format!(
-                "light samples adding under {:.3e} (1% of the scene's brightness) to a pixel: Russian roulette before the shadow ray",
-                t.light_cutoff
+                "light samples adding under {:.3e} ({}% of the scene's brightness) to a pixel: Russian roulette before the shadow ray",
+                t.light_cutoff,
+                LIGHT_CUTOFF * 100.0
             ));
+        }
+        if t.light_sampling && t.light_cutoff_pending {
+            stages.push(
+                "light-sample cutoff: derived from a preview where the scene is rendered (this load built no BVH)"
+                    .into(),
+            );
         }
         let mut bsdfs: Vec<&'static str> = Vec::new();
         for b in &scene.bsdfs {

@@ -73,11 +73,12 @@ pub fn accum_rect(scene: &Scene, r: &Region) -> (u32, u32, u32, u32) {
     (x0, y0, x1 - x0, y1 - y0)
 }
 
-/// A preview of the scene: the mean luminance of its samples at a grid of 16 x 16 pixels, 4
-/// each (seed 0), rendered as [`render_region`] renders them with the scene's techniques as
-/// they are (0 where that is not finite), and the shadow rays those samples traced. What the
-/// light-sample cutoff derives from ([`Scene::derive_techniques`]). A pure function of the
-/// scene: 1,024 samples, on the calling thread.
+/// A preview of the scene: the luminance of a grid of 16 x 16 of its (output) pixels, 4
+/// samples each, rendered as [`render_region`] renders them with the scene's techniques as
+/// they are, averaged over the samples by their filter weights (0 where that is not finite),
+/// and the shadow rays those samples traced. What the light-sample cutoff derives from
+/// ([`Scene::derive_techniques`]). A pure function of the scene: 1,024 samples, on the calling
+/// thread, numbered from [`PREVIEW_SAMPLES`] (seed 0), past any render's.
 pub fn preview(scene: &Scene) -> (f64, u64) {
     const GRID: u64 = 16;
     let (w, h) = (scene.film.crop_width as u64, scene.film.crop_height as u64);
@@ -85,7 +86,8 @@ pub fn preview(scene: &Scene) -> (f64, u64) {
     for j in 0..GRID {
         for i in 0..GRID {
             let (x, y) = (((2 * i + 1) * w / (2 * GRID)) as u32, ((2 * j + 1) * h / (2 * GRID)) as u32);
-            let r = Region { x0: x, y0: y, x1: x + 1, y1: y + 1, s0: 0, s1: 4 };
+            let r =
+                Region { x0: x, y0: y, x1: x + 1, y1: y + 1, s0: PREVIEW_SAMPLES, s1: PREVIEW_SAMPLES + 4 };
             let (acc, st) = render_region(scene, &r, 0);
             for p in &acc.pixels {
                 let rgb = p.rgb.map(crate::film::to_f64);
@@ -98,6 +100,10 @@ pub fn preview(scene: &Scene) -> (f64, u64) {
     let b = sum / weight;
     (if b.is_finite() && b > 0.0 { b } else { 0.0 }, shadow_rays)
 }
+
+/// Where [`preview`] numbers its samples: past the farm's limit of 2^24 samples a pixel (and
+/// any render's in practice), so that no render reuses the numbers its cutoff was derived from.
+pub const PREVIEW_SAMPLES: u64 = 1 << 40;
 
 /// Renders one region into a partial accumulation over the region plus the filter margin.
 pub fn render_region(scene: &Scene, r: &Region, seed: u64) -> (Accum, Stats) {

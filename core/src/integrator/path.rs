@@ -239,23 +239,26 @@ pub fn li(
                 let (f, bsdf_pdf) = bsdf.eval_pdf(tc, wo, wi);
                 let light_pdf = ls.pdf * sel_pdf;
                 let w = if ls.delta || !plan.mis { 1.0 } else { mis_power(light_pdf, bsdf_pdf) };
-                // What the sample adds to the pixel if the light is visible, looked up ahead
-                // of the shadow ray only where a cutoff asks for it (in fur most of the
-                // rays are blocked, and an environment map's lookup is a bilinear fetch).
+                // The light's radiance, looked up ahead of the shadow ray only where a cutoff
+                // needs it (an environment map's lookup is a bilinear fetch, otherwise made
+                // only for rays that are clear).
                 let mut li = None;
-                // Russian roulette below the cutoff (`Techniques::light_cutoff`), on the
-                // path's roulette number: nothing about this sample depends on it, so the
-                // expectation is kept. (A NaN is traced, as before, for the film to count; a
-                // sample under 1e-20 of the cutoff is dropped, so that its weight stays
-                // finite.)
+                // Russian roulette below the cutoff (`Techniques::light_cutoff`) on the
+                // path's roulette number, which nothing about this sample depends on. It is
+                // a multiple of 2^-23 (Sobol sets; of 2^-24 past them), so q is rounded up to
+                // one: the chance of u < q is then q exactly, and the expectation is kept.
+                // (What the sample adds is measured in magnitude, so that a negative radiance
+                // goes through the roulette too; a NaN is traced, as before, for the film to
+                // count.)
                 let mut keep = 1.0;
                 if f != Rgb::ZERO && plan.light_cutoff > 0.0 {
                     let le = ls.li(light);
                     li = Some(le);
-                    let c = crate::math::luminance(beta * f * le) * (w / light_pdf);
+                    let c = crate::math::luminance((beta * f * le).abs()) * (w / light_pdf);
                     if c < plan.light_cutoff {
-                        let q = c / plan.light_cutoff;
-                        keep = if q > 1e-20 && choices.get(s)[2] < q { 1.0 / q } else { 0.0 };
+                        const GRID: f32 = (1u32 << 23) as f32;
+                        let q = (c / plan.light_cutoff * GRID).ceil() / GRID;
+                        keep = if choices.get(s)[2] < q { 1.0 / q } else { 0.0 };
                     }
                 }
                 if f != Rgb::ZERO && keep > 0.0 {
@@ -267,7 +270,9 @@ pub fn li(
                     let from = scene.accel.spawned_from(&scene.shapes, &hit, &it, ls_wi);
                     if !scene.occluded_from(&shadow, from) {
                         let le = li.unwrap_or_else(|| ls.li(light));
-                        l += beta * f * le * (w / light_pdf * keep);
+                        // (keep after the product: it is at most 2^23 where the product is
+                        // under the cutoff, so their product stays finite.)
+                        l += beta * f * le * (w / light_pdf) * keep;
                     }
                 }
             }

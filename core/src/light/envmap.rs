@@ -382,7 +382,8 @@ impl EnvMap {
 
     /// [`EnvMap::sample`] without the radiance: the direction, the point (u, v) where
     /// [`EnvMap::radiance_at`] gives its radiance, and the pdf. Light sampling looks the
-    /// radiance up only once the shadow ray is clear.
+    /// radiance up only once the shadow ray is clear (or, under a light-sample cutoff,
+    /// before it).
     pub fn sample_direction(&self, u: Vec2) -> Option<(Vec3, Vec2, f32)> {
         if self.warp.total <= 0.0 {
             return None;

@@ -110,8 +110,9 @@ pub struct LightSample {
 }
 
 /// A light sample's incident radiance, or the point of an environment map where it is to be
-/// looked up: only once the shadow ray is clear (in fur most are blocked), as the lookup is a
-/// bilinear fetch from a large image.
+/// looked up: only once the shadow ray is clear (in fur many are blocked), as the lookup is a
+/// bilinear fetch from a large image, unless a light-sample cutoff needs it before
+/// (`Techniques::light_cutoff`).
 #[derive(Clone, Copy, Debug)]
 enum Incident {
     Known(Rgb),

@@ -282,7 +282,7 @@ pub(crate) fn build_within(doc: &Doc, budget: Budget) -> R<Scene> {
         load_estimate: b.budget.peak,
     };
     scene.sampled_lights = super::sampled_lights(&scene.lights);
-    scene.derive_techniques();
+    scene.derive_techniques(b.budget.limits.accel);
     Ok(scene)
 }
 

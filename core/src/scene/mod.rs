@@ -176,32 +176,47 @@ impl Scene {
             l.disable_mis_compensation();
         }
         self.sampled_lights = sampled_lights(&self.lights);
-        self.derive_techniques();
+        // (The light-sample cutoff stays as derived for the scene as loaded: the ablation
+        // changes compensation alone.)
+        let (cutoff, pending) = (self.techniques.light_cutoff, self.techniques.light_cutoff_pending);
+        self.techniques = Techniques::derive(self);
+        (self.techniques.light_cutoff, self.techniques.light_cutoff_pending) = (cutoff, pending);
     }
 
     /// Derives the techniques from the scene ([`Techniques::derive`]), and then the
     /// light-sample cutoff: [`crate::plan::LIGHT_CUTOFF`] of the scene's brightness as those
-    /// techniques render it ([`crate::render::preview`]), kept where it leaves out at least
-    /// [`crate::plan::CUTOFF_SAVES`] of the preview's shadow rays (elsewhere its test would
-    /// cost more than it saves). Deterministic: every worker that loads the scene derives
-    /// the same cutoff.
-    pub fn derive_techniques(&mut self) {
+    /// techniques render it ([`crate::render::preview`] of the whole film, whatever the crop
+    /// window), kept where it leaves out at least [`crate::plan::CUTOFF_SAVES`] of the
+    /// preview's shadow rays (elsewhere its test would cost more than it saves).
+    /// Deterministic: every load of the scene with its BVH derives the same cutoff on the same
+    /// CPU target. Without the BVH (`built` false: the coordinator's loads, which plan but do
+    /// not render) the cutoff is left to the loads that render
+    /// ([`Techniques::light_cutoff_pending`]).
+    pub fn derive_techniques(&mut self, built: bool) {
         self.techniques = Techniques::derive(self);
         if !self.techniques.light_sampling {
             return;
         }
-        let (brightness, all) = crate::render::preview(self);
-        let cutoff = (brightness * crate::plan::LIGHT_CUTOFF) as f32;
-        if !(cutoff > 0.0 && cutoff.is_finite()) {
+        if !built {
+            self.techniques.light_cutoff_pending = true;
             return;
         }
-        self.techniques.light_cutoff = cutoff;
-        let (_, traced) = crate::render::preview(self);
-        let saves = 1.0 - traced as f64 / all as f64;
-        tracing::debug!(brightness, cutoff, saves, "light-sample cutoff");
-        if !(saves >= crate::plan::CUTOFF_SAVES) {
-            self.techniques.light_cutoff = 0.0;
+        // The whole film, so that a crop window renders its pixels as the whole image does.
+        let film = self.film.clone();
+        (self.film.crop_x, self.film.crop_y) = (0, 0);
+        (self.film.crop_width, self.film.crop_height) = (film.width, film.height);
+        let (brightness, all) = crate::render::preview(self);
+        let cutoff = (brightness * crate::plan::LIGHT_CUTOFF) as f32;
+        if cutoff > 0.0 && cutoff.is_finite() {
+            self.techniques.light_cutoff = cutoff;
+            let (_, traced) = crate::render::preview(self);
+            let saves = 1.0 - traced as f64 / all as f64;
+            tracing::debug!(brightness, cutoff, saves, "light-sample cutoff");
+            if !(saves >= crate::plan::CUTOFF_SAVES) {
+                self.techniques.light_cutoff = 0.0;
+            }
         }
+        self.film = film;
     }
 
     /// Whether the scene has a light of this kind.
