@@ -9,7 +9,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
 
-use furnace_core::{LoadLimits, Scene};
+use furnace_core::{LoadLimits, PlanDescription, Scene, Techniques};
 
 /// Counts the bytes allocated now and the most at once since the last reset.
 struct Counting;
@@ -314,7 +314,8 @@ fn a_texture_that_keeps_its_bytes_loads_in_a_fraction_of_the_memory() {
 }
 
 /// A load past its deadline stops with an error; without its BVH a scene is the same scene,
-/// planned alike, with nothing to trace.
+/// planned alike, with nothing to trace, except that its light-sample cutoff (which a preview
+/// render derives) is left to the loads that render it, as its plan says.
 #[test]
 fn a_load_keeps_to_its_deadline_and_may_skip_the_bvh() {
     let _alone = alone();
@@ -328,7 +329,18 @@ fn a_load_keeps_to_its_deadline_and_may_skip_the_bvh() {
         (bare.film.clone(), bare.spp, bare.load_estimate),
         (full.film.clone(), full.spp, full.load_estimate)
     );
-    assert_eq!(bare.techniques, full.techniques);
-    assert_eq!(bare.describe(), full.describe());
+    assert!(full.techniques.light_cutoff > 0.0 && !full.techniques.light_cutoff_pending);
+    assert!(bare.techniques.light_cutoff == 0.0 && bare.techniques.light_cutoff_pending);
+    let pending = Techniques { light_cutoff: 0.0, light_cutoff_pending: true, ..full.techniques };
+    assert_eq!(bare.techniques, pending);
+    let (mut bare_plan, mut full_plan) = (bare.describe(), full.describe());
+    let cutoff = |p: &mut PlanDescription, what: &str| {
+        let n = p.stages.len();
+        p.stages.retain(|s| !s.contains(what));
+        assert_eq!(p.stages.len(), n - 1, "one stage names {what}: {:?}", p.stages);
+    };
+    cutoff(&mut bare_plan, "light-sample cutoff: derived from a preview where the scene is rendered");
+    cutoff(&mut full_plan, "Russian roulette before the shadow ray");
+    assert_eq!(bare_plan, full_plan);
     assert_eq!((bare.accel.prim_count(), full.accel.prim_count() > 0), (0, true));
 }
