@@ -80,6 +80,7 @@ enum Ablation {
     UniformEnvironment,
     DiffuseInsteadOfHair,
     NoLightCutoff,
+    NoEarlyRoulette,
     TextureFilter(FilterType),
     MaxDepth(u32),
 }
@@ -104,6 +105,9 @@ impl Ablation {
         }
         if t.light_sampling && t.light_cutoff > 0.0 {
             all.push(Ablation::NoLightCutoff);
+        }
+        if t.early_roulette > 0.0 && scene.integrator.max_depth > 2 && scene.integrator.rr_depth > 2 {
+            all.push(Ablation::NoEarlyRoulette);
         }
         if scene.has_light(LightKind::Envmap) {
             all.push(Ablation::UniformEnvironment);
@@ -134,6 +138,7 @@ impl Ablation {
             Ablation::UniformEnvironment => "environment sampled uniformly".into(),
             Ablation::DiffuseInsteadOfHair => "diffuse instead of hair".into(),
             Ablation::NoLightCutoff => "every light sample's shadow ray traced (no cutoff)".into(),
+            Ablation::NoEarlyRoulette => "Russian roulette only from rr_depth".into(),
             Ablation::TextureFilter(f) => format!("texture filter {}", f.name()),
             Ablation::MaxDepth(d) => format!("max_depth {d}"),
         }
@@ -171,6 +176,7 @@ impl Ablation {
             }
             Ablation::NoMisCompensation => s.disable_mis_compensation(),
             Ablation::NoLightCutoff => s.techniques.light_cutoff = 0.0,
+            Ablation::NoEarlyRoulette => s.techniques.early_roulette = 0.0,
             Ablation::UniformEnvironment => {
                 for l in &mut s.lights {
                     if let Light::Envmap(e) = l {
@@ -409,7 +415,7 @@ mod tests {
         // cbox: one area light (MIS), no environment, no hair, no bitmap; max_depth 8.
         assert_eq!(
             Ablation::for_scene(&scene("cbox.xml")),
-            [AsScene, BsdfSamplingOnly, LightSamplingOnly, MaxDepth(2), MaxDepth(3)]
+            [AsScene, BsdfSamplingOnly, LightSamplingOnly, NoEarlyRoulette, MaxDepth(2), MaxDepth(3)]
         );
         // hair: fibres under a compensated environment map, a light-sample cutoff.
         let hair = Ablation::for_scene(&scene("hair.xml"));

@@ -43,7 +43,19 @@ pub struct Techniques {
     /// The scene was loaded without its BVH (to be checked and planned, not rendered): the
     /// loads that render it derive the cutoff.
     pub light_cutoff_pending: bool,
+    /// Before `rr_depth`, from the second bounce on, a path whose throughput (its largest
+    /// channel, times eta^2, as Mitsuba's roulette measures it) has fallen under this goes
+    /// through Russian roulette too: it goes on with probability throughput / this, weighted
+    /// by the inverse. The first bounce never does: what it finds is most of a dark pixel's
+    /// value (textured.xml's dark squares lost 2.5% of relMSE to it for 2% of time). 0: only
+    /// from `rr_depth`. [`Techniques::derive`] sets [`EARLY_ROULETTE`].
+    pub early_roulette: f32,
 }
+
+/// [`Techniques::early_roulette`]: 5%. Fur absorbs: two or three bounces in, many of its
+/// paths carry a few percent, and each bounce through fur costs a full ray; docs/BENCHMARKS.md,
+/// "Issue 15, thirty-second step".
+pub const EARLY_ROULETTE: f32 = 0.05;
 
 /// The light-sample cutoff ([`Techniques::light_cutoff`]) as a share of the scene's
 /// brightness ([`crate::render::preview`]): 1%. In fur, paths lose most of their throughput
@@ -70,6 +82,7 @@ impl Techniques {
             footprints: scene.bsdfs.iter().flat_map(|b| b.textures()).any(|t| t.wants_footprint()),
             light_cutoff: 0.0,
             light_cutoff_pending: false,
+            early_roulette: EARLY_ROULETTE,
         }
     }
 }
@@ -230,7 +243,15 @@ impl PlanDescription {
             );
         }
         let i = &scene.integrator;
-        stages.push(format!("Russian roulette from depth {}", i.rr_depth));
+        if t.early_roulette > 0.0 {
+            stages.push(format!(
+                "Russian roulette from depth {}, and before it for paths under {}% throughput",
+                i.rr_depth,
+                t.early_roulette * 100.0
+            ));
+        } else {
+            stages.push(format!("Russian roulette from depth {}", i.rr_depth));
+        }
         PlanDescription {
             camera,
             filter: scene.film.filter.name(),

@@ -256,9 +256,7 @@ pub fn li(
                     li = Some(le);
                     let c = crate::math::luminance((beta * f * le).abs()) * (w / light_pdf);
                     if c < plan.light_cutoff {
-                        const GRID: f32 = (1u32 << 23) as f32;
-                        let q = (c / plan.light_cutoff * GRID).ceil() / GRID;
-                        keep = if choices.get(s)[2] < q { 1.0 / q } else { 0.0 };
+                        keep = roulette(c / plan.light_cutoff, choices.get(s)[2]);
                     }
                 }
                 if f != Rgb::ZERO && keep > 0.0 {
@@ -298,12 +296,39 @@ pub fn li(
                 break;
             }
             beta /= q;
+        } else if plan.early_roulette > 0.0 && depth >= 2 {
+            // Before rr_depth, from the second bounce on, for paths whose throughput fell
+            // under `early_roulette` (`Techniques::early_roulette`), on the same number:
+            // nothing this vertex has drawn depends on it.
+            let m = beta.max_element() * eta * eta;
+            if m < plan.early_roulette {
+                let keep = roulette(m / plan.early_roulette, choices.get(s)[2]);
+                if keep == 0.0 {
+                    break;
+                }
+                beta *= keep;
+            }
         }
         if !(beta.max_element() > 0.0) {
             break;
         }
     }
     l
+}
+
+/// Russian roulette with probability `q` (in [0, 1]) on `u`: the weight of what goes on, 1 /
+/// q, or 0 for what stops. `u` is a multiple of 2^-23 (Sobol sets; of 2^-24 past them), so q
+/// is first rounded up to one: the chance that u < q is then q exactly, and the expectation
+/// is kept.
+#[inline]
+fn roulette(q: f32, u: f32) -> f32 {
+    const GRID: f32 = (1u32 << 23) as f32;
+    let q = (q * GRID).ceil() / GRID;
+    if u < q {
+        1.0 / q
+    } else {
+        0.0
+    }
 }
 
 /// What [`li`] returns for camera rays that hit nothing (their directions `d`, at most eight),
