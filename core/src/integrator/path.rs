@@ -1,6 +1,9 @@
 //! Unidirectional path tracing with next-event estimation and multiple importance sampling
 //! (power heuristic, Veach 1997), Russian roulette as Mitsuba 3's `path` integrator does it:
-//! from `rr_depth` on, continue with probability min(max(throughput) * eta^2, 0.95).
+//! from `rr_depth` on, continue with probability min(max(throughput) * eta^2, 0.95). Before
+//! it, from the second bounce on, paths under `Techniques::early_roulette` throughput go
+//! through roulette too, and light samples under `Techniques::light_cutoff` before their
+//! shadow ray (the same expectation).
 //!
 //! Depth follows Mitsuba: the camera ray's hit is depth 0; emission is gathered at every depth;
 //! a vertex at depth d scatters only if d + 1 < max_depth.

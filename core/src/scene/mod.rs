@@ -54,7 +54,8 @@ pub struct FilmSettings {
 pub struct PathSettings {
     /// Longest path, in vertices after the camera (`u32::MAX` for Mitsuba's -1).
     pub max_depth: u32,
-    /// Depth from which Russian roulette starts.
+    /// Depth from which Mitsuba's Russian roulette starts (Furnace's own for low-throughput
+    /// paths may act before it: `Techniques::early_roulette`).
     pub rr_depth: u32,
     /// Hide directly visible emitters.
     pub hide_emitters: bool,
