@@ -90,8 +90,8 @@ pub fn preview(scene: &Scene) -> (f64, u64) {
                 Region { x0: x, y0: y, x1: x + 1, y1: y + 1, s0: PREVIEW_SAMPLES, s1: PREVIEW_SAMPLES + 4 };
             let (acc, st) = render_region(scene, &r, 0);
             for p in &acc.pixels {
-                let rgb = p.rgb.map(crate::film::to_f64);
-                sum += 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2];
+                let [r, g, b] = p.rgb.map(|c| crate::film::to_f64(c) as f32);
+                sum += crate::math::luminance_f64(Rgb::new(r, g, b));
                 weight += crate::film::to_f64(p.weight);
             }
             shadow_rays += st.shadow_rays;
