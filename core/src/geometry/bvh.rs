@@ -2235,6 +2235,12 @@ impl Accel {
         out: &mut [Option<Hit>],
     ) {
         assert!(rays.len() <= PACKET && out.len() == rays.len(), "{} rays into {}", rays.len(), out.len());
+        if cands.complete && cands.leaves.is_empty() {
+            // The pixel's bundle meets no leaf (a sky pixel): every ray escapes, and nothing
+            // need be set up to find that out.
+            out.fill(None);
+            return;
+        }
         #[cfg(target_arch = "x86_64")]
         if cands.complete && self.kernel == Kernel::Avx2 && rays.len() > 1 {
             let n = rays.len();
