@@ -165,6 +165,9 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
             // PACKET: their first hits are found together (and the radiance of those that hit
             // nothing), then each path goes on alone.
             let gathered = cands.len().is_some();
+            // A pixel whose bundle meets no leaf (a sky pixel): every camera ray escapes, and
+            // a packet needs only its rays and their lights' radiance, looked up together.
+            let sky = together && cands.len() == Some(0) && path::looks_up_escaped(scene);
             let mut i = r.s0;
             while i < r.s1 {
                 let want = if gathered && together { (r.s1 - i).min(PACKET as u64) as usize } else { 1 };
@@ -183,33 +186,41 @@ fn render_region_in(scene: &Scene, r: &Region, seed: u64, together: bool) -> (Ac
                 let mut rays = [Ray::new(Vec3::ZERO, Vec3::Z); PACKET];
                 cam.rays(&pos[..n], &lens_u[..n], &mut rays[..n]);
                 let mut diffs = [None; PACKET];
-                if scene.techniques.footprints {
-                    // Differentials to a neighbour FOOTPRINT_PIXELS away: the pixel filter
-                    // already averages many samples, so a full pixel would blur twice.
-                    let (mut rx, mut ry) = ([rays[0]; PACKET], [rays[0]; PACKET]);
-                    let shifted = |by: Vec2| -> [Vec2; PACKET] { std::array::from_fn(|j| pos[j] + by) };
-                    cam.rays(&shifted(Vec2::new(FOOTPRINT_PIXELS, 0.0))[..n], &lens_u[..n], &mut rx[..n]);
-                    cam.rays(&shifted(Vec2::new(0.0, FOOTPRINT_PIXELS))[..n], &lens_u[..n], &mut ry[..n]);
-                    for j in 0..n {
-                        diffs[j] = Some(RayDifferentials { rx: rx[j], ry: ry[j] });
-                    }
-                }
                 let mut hits = [None; PACKET];
                 // The radiance of the rays that hit nothing, looked up together (bit j: ray j's
                 // is in escaped[j]).
                 let (mut escaped, mut looked_up) = ([Rgb::ZERO; PACKET], 0u32);
-                if gathered {
-                    scene.intersect_among_packet(&rays[..n], &cands, &mut hits[..n]);
-                    let (mut dirs, mut lanes, mut m) = ([Vec3::ZERO; PACKET], [0usize; PACKET], 0);
-                    for j in (0..n).filter(|&j| hits[j].is_none()) {
-                        (dirs[m], lanes[m]) = (rays[j].d, j);
-                        m += 1;
+                if sky && n > 1 {
+                    // What the packet below would find for them, bit for bit (no hits, then
+                    // `path::li_escaped` of all), without its per-ray bookkeeping.
+                    let dirs: [Vec3; PACKET] = std::array::from_fn(|j| rays[j].d);
+                    path::li_escaped(scene, &dirs[..n], &mut escaped[..n], &mut st);
+                    looked_up = (1 << n) - 1;
+                } else {
+                    if scene.techniques.footprints {
+                        // Differentials to a neighbour FOOTPRINT_PIXELS away: the pixel filter
+                        // already averages many samples, so a full pixel would blur twice.
+                        let (mut rx, mut ry) = ([rays[0]; PACKET], [rays[0]; PACKET]);
+                        let shifted = |by: Vec2| -> [Vec2; PACKET] { std::array::from_fn(|j| pos[j] + by) };
+                        cam.rays(&shifted(Vec2::new(FOOTPRINT_PIXELS, 0.0))[..n], &lens_u[..n], &mut rx[..n]);
+                        cam.rays(&shifted(Vec2::new(0.0, FOOTPRINT_PIXELS))[..n], &lens_u[..n], &mut ry[..n]);
+                        for j in 0..n {
+                            diffs[j] = Some(RayDifferentials { rx: rx[j], ry: ry[j] });
+                        }
                     }
-                    let mut out = [Rgb::ZERO; PACKET];
-                    if together && m > 1 && path::li_escaped(scene, &dirs[..m], &mut out[..m], &mut st) {
-                        for (&j, &l) in lanes[..m].iter().zip(&out[..m]) {
-                            escaped[j] = l;
-                            looked_up |= 1 << j;
+                    if gathered {
+                        scene.intersect_among_packet(&rays[..n], &cands, &mut hits[..n]);
+                        let (mut dirs, mut lanes, mut m) = ([Vec3::ZERO; PACKET], [0usize; PACKET], 0);
+                        for j in (0..n).filter(|&j| hits[j].is_none()) {
+                            (dirs[m], lanes[m]) = (rays[j].d, j);
+                            m += 1;
+                        }
+                        let mut out = [Rgb::ZERO; PACKET];
+                        if together && m > 1 && path::li_escaped(scene, &dirs[..m], &mut out[..m], &mut st) {
+                            for (&j, &l) in lanes[..m].iter().zip(&out[..m]) {
+                                escaped[j] = l;
+                                looked_up |= 1 << j;
+                            }
                         }
                     }
                 }

@@ -340,8 +340,7 @@ fn roulette(q: f32, u: f32) -> f32 {
 /// nothing done, where [`li`] would not simply look them up (`max_depth` 0, hidden emitters,
 /// the lookup ablated).
 pub fn li_escaped(scene: &Scene, d: &[Vec3], out: &mut [Rgb], st: &mut Stats) -> bool {
-    let settings = &scene.integrator;
-    if settings.max_depth == 0 || settings.hide_emitters || !scene.techniques.escaped_rays_lookup {
+    if !looks_up_escaped(scene) {
         return false;
     }
     let n = d.len();
@@ -364,6 +363,14 @@ pub fn li_escaped(scene: &Scene, d: &[Vec3], out: &mut [Rgb], st: &mut Stats) ->
     st.rays += n as u64;
     st.escaped_lookups += n as u64;
     true
+}
+
+/// Whether [`li_escaped`] looks up what camera rays that hit nothing bring (else it does
+/// nothing and returns false).
+#[inline]
+pub fn looks_up_escaped(scene: &Scene) -> bool {
+    let settings = &scene.integrator;
+    settings.max_depth != 0 && !settings.hide_emitters && scene.techniques.escaped_rays_lookup
 }
 
 /// Scene loading: `path` (`max_depth` -1 = unlimited, `rr_depth` 5, `hide_emitters`).
