@@ -344,6 +344,66 @@ impl EnvMap {
         let (mut us, mut vs) = ([0.0f32; 8], [0.0f32; 8]);
         _mm256_storeu_ps(us.as_mut_ptr(), u);
         _mm256_storeu_ps(vs.as_mut_ptr(), v);
+        let t = &self.texels;
+        if self.filter != FilterType::Nearest && t.lanes {
+            // `Bordered::bilinear`'s texel and weights on eight lanes, the same operations in
+            // the same order, where every (u, v) lies in the unit square (as a direction's
+            // does); then each lane's blend, as `Bordered::lerp` makes it.
+            let one = _mm256_set1_ps(1.0);
+            let inside = _mm256_and_ps(
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(u, _mm256_setzero_ps()),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(u, one),
+                ),
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(v, _mm256_setzero_ps()),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(v, one),
+                ),
+            );
+            if _mm256_movemask_ps(inside) == 0xff {
+                let half = _mm256_set1_ps(0.5);
+                let px = _mm256_sub_ps(_mm256_mul_ps(u, _mm256_set1_ps(t.fw)), half);
+                let py = _mm256_sub_ps(_mm256_mul_ps(v, _mm256_set1_ps(t.fh)), half);
+                // Truncation, less one below 0 (the mask's -1 added): floor for px >= -0.5.
+                // (A macro: a closure here would not inherit the function's AVX2.)
+                macro_rules! floor {
+                    ($p:expr) => {
+                        _mm256_add_epi32(
+                            _mm256_cvttps_epi32($p),
+                            _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LT_OQ>($p, _mm256_setzero_ps())),
+                        )
+                    };
+                }
+                let (x0, y0) = (floor!(px), floor!(py));
+                let tx = _mm256_sub_ps(px, _mm256_cvtepi32_ps(x0));
+                let ty = _mm256_sub_ps(py, _mm256_cvtepi32_ps(y0));
+                // The bordered texel (x0 + 1, y0 + 1): (y0 + 1) s + x0 + 1, below 2^31 (`lanes`).
+                let stride = (t.w + 2) as i32;
+                let one_i = _mm256_set1_epi32(1);
+                let first = _mm256_add_epi32(
+                    _mm256_mullo_epi32(_mm256_add_epi32(y0, one_i), _mm256_set1_epi32(stride)),
+                    _mm256_add_epi32(x0, one_i),
+                );
+                let (mut at, mut fx, mut fy) = ([0i32; 8], [0.0f32; 8], [0.0f32; 8]);
+                _mm256_storeu_si256(at.as_mut_ptr().cast(), first);
+                _mm256_storeu_ps(fx.as_mut_ptr(), tx);
+                _mm256_storeu_ps(fy.as_mut_ptr(), ty);
+                let s = stride as usize;
+                for (j, o) in out[..n].iter_mut().enumerate() {
+                    let i = at[j] as usize;
+                    // SAFETY: as in `Bordered::lerp`: the texel's column is at most w and its
+                    // row at most h, and the spare texel follows the last.
+                    let c = crate::texture::bitmap::blend_unchecked(
+                        &t.texels,
+                        [i, i + 1, i + s, i + s + 1],
+                        fx[j],
+                        fy[j],
+                    );
+                    *o = c * self.scale;
+                }
+                return;
+            }
+        }
         for (j, o) in out[..n].iter_mut().enumerate() {
             *o = self.lookup(Vec2::new(us[j], vs[j]));
         }
@@ -431,6 +491,9 @@ struct Bordered {
     /// Both sides below 2^23, where f32 holds every px = u w - 0.5 of the unit square within
     /// [-0.5, w - 0.5] (and py likewise): [`Bordered::bilinear`]'s fast path.
     fast: bool,
+    /// `fast`, and every bordered texel's index below 2^31: the fast path on eight lanes of
+    /// i32 ([`EnvMap::eval_many`]).
+    lanes: bool,
     texels: Vec<Rgb>,
 }
 
@@ -446,7 +509,9 @@ impl Bordered {
             texels.extend((0..w + 2).map(|c| b.texel((c + w - 1) % w, y)));
         }
         texels.push(Rgb::ZERO);
-        Bordered { w, h, fw: w as f32, fh: h as f32, fast: w < 1 << 23 && h < 1 << 23, texels }
+        let fast = w < 1 << 23 && h < 1 << 23;
+        let lanes = fast && ((w + 2) as u64 * (h + 2) as u64) < 1 << 31;
+        Bordered { w, h, fw: w as f32, fh: h as f32, fast, lanes, texels }
     }
 
     /// The map without its border.
