@@ -65,9 +65,11 @@ impl Conductor {
                 eta: 1.0,
             });
         };
-        let (m, pdf_m) = r.at(uv).sample(wo, u);
+        let m = r.at(uv).sample_normal(wo, u);
         let wi = reflect(wo, m);
-        if wi.z <= 0.0 || pdf_m <= 0.0 {
+        // (A normal of pdf 0 leads to a direction of pdf 0 below: from wo.m <= 0, wi lies
+        // below the surface or its half vector is -m, where D is 0.)
+        if wi.z <= 0.0 {
             return None;
         }
         // pdf and value from wi, exactly as `eval_pdf` computes them for light sampling, so

@@ -138,8 +138,9 @@ impl Dielectric {
             });
         };
         let mf = r.at(uv);
-        let (m, pdf_m) = mf.sample(wo_f, u2);
-        if pdf_m <= 0.0 || wo_f.dot(m) <= 0.0 {
+        // (Its pdf is that of the direction, from `eval_pdf` below: 0 there where m's is.)
+        let m = mf.sample_normal(wo_f, u2);
+        if wo_f.dot(m) <= 0.0 {
             return None;
         }
         let (f, cos_t) = fresnel_dielectric(wo_f.dot(m), eta);

@@ -83,11 +83,19 @@ impl Microfacet {
 
     /// Samples a microfacet normal seen from `wo` (wo.z > 0). Returns `(m, pdf(m))`.
     pub fn sample(&self, wo: Vec3, u: Vec2) -> (Vec3, f32) {
-        let m = match self.kind {
+        let m = self.sample_normal(wo, u);
+        (m, self.pdf(wo, m))
+    }
+
+    /// [`Microfacet::sample`]'s normal alone: the BSDFs evaluate the value and pdf of the
+    /// direction it leads to (`eval_pdf`), so the pdf of m (a division and a root) would be
+    /// thrown away.
+    #[inline]
+    pub fn sample_normal(&self, wo: Vec3, u: Vec2) -> Vec3 {
+        match self.kind {
             Distribution::Ggx => self.sample_ggx_visible(wo, u),
             Distribution::Beckmann => self.sample_beckmann_visible(wo, u),
-        };
-        (m, self.pdf(wo, m))
+        }
     }
 
     /// Density of [`Microfacet::sample`] over microfacet normals.

@@ -64,7 +64,7 @@ impl RoughCoating {
                     for a in 0..k {
                         for b in 0..k {
                             let u = Vec2::new((a as f32 + 0.5) / k as f32, (b as f32 + 0.5) / k as f32);
-                            let (m, _) = mf.sample(wo, u);
+                            let m = mf.sample_normal(wo, u);
                             let (f, cos_t) = fresnel_dielectric(wo.dot(m), eta);
                             let wr = reflect(wo, m);
                             if wr.z > 0.0 {
@@ -160,7 +160,7 @@ impl Plastic {
         if let Some(r) = &self.rough {
             // Both lobes are non-delta: pick one to sample, weight by the full eval / pdf.
             let wi = if u1 < p_spec {
-                reflect(wo, r.roughness.at(uv).sample(wo, u2).0)
+                reflect(wo, r.roughness.at(uv).sample_normal(wo, u2))
             } else {
                 square_to_cosine_hemisphere(u2)
             };
