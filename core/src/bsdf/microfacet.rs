@@ -256,7 +256,9 @@ pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> (f32, f32) {
 
 /// Exact unpolarised Fresnel reflectance of a conductor with complex index eta + i k,
 /// per channel, for cos_i in [0, 1]. Where the CPU has AVX, the three channels at once (the
-/// same operations on f64 lanes, so the same bits: `conductor_lanes_are_the_scalar_fresnel`).
+/// same operations on f64 lanes, so the same bits for finite indices, which are all a scene
+/// can give: `conductor_lanes_are_the_scalar_fresnel`; from an infinite or NaN index both
+/// give NaN, whose sign and payload may differ).
 pub fn fresnel_conductor(cos_i: f32, eta: Vec3, k: Vec3) -> Vec3 {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx") {
