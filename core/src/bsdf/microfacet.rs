@@ -81,15 +81,10 @@ impl Microfacet {
         1.0 / (1.0 + self.lambda(w))
     }
 
-    /// Samples a microfacet normal seen from `wo` (wo.z > 0). Returns `(m, pdf(m))`.
-    pub fn sample(&self, wo: Vec3, u: Vec2) -> (Vec3, f32) {
-        let m = self.sample_normal(wo, u);
-        (m, self.pdf(wo, m))
-    }
-
-    /// [`Microfacet::sample`]'s normal alone: the BSDFs evaluate the value and pdf of the
-    /// direction it leads to (`eval_pdf`), so the pdf of m (a division and a root) would be
-    /// thrown away.
+    /// Samples a microfacet normal seen from `wo` (wo.z > 0), of density G1(wo, m) max(0,
+    /// wo.m) D(m) / wo.z ([`Microfacet::terms`]' third). The density is not returned: the
+    /// BSDFs evaluate the value and pdf of the direction the normal leads to (`eval_pdf`), so
+    /// it (a division and a root) would be thrown away.
     #[inline]
     pub fn sample_normal(&self, wo: Vec3, u: Vec2) -> Vec3 {
         match self.kind {
@@ -98,18 +93,9 @@ impl Microfacet {
         }
     }
 
-    /// Density of [`Microfacet::sample`] over microfacet normals.
-    #[inline]
-    pub fn pdf(&self, wo: Vec3, m: Vec3) -> f32 {
-        if wo.z <= 0.0 {
-            return 0.0;
-        }
-        Self::pdf_of(wo, m, self.d(m), self.g1(wo, m))
-    }
-
     /// What a microfacet BSDF's value and pdf need, each term computed once: D(m), the
-    /// separable masking-shadowing G(wo, wi, m) = G1(wo, m) G1(wi, m), and [`Microfacet::pdf`]
-    /// of m (which shares D and G1(wo)).
+    /// separable masking-shadowing G(wo, wi, m) = G1(wo, m) G1(wi, m), and the density
+    /// of m that [`Microfacet::sample_normal`] draws (which shares D and G1(wo)).
     #[inline]
     pub fn terms(&self, wo: Vec3, wi: Vec3, m: Vec3) -> (f32, f32, f32) {
         let (d, g1o) = (self.d(m), self.g1(wo, m));
@@ -117,7 +103,7 @@ impl Microfacet {
         (d, g1o * self.g1(wi, m), pdf)
     }
 
-    /// [`Microfacet::pdf`] for wo.z > 0 from D(m) and G1(wo, m).
+    /// [`Microfacet::sample_normal`]'s density of m for wo.z > 0, from D(m) and G1(wo, m).
     #[inline]
     fn pdf_of(wo: Vec3, m: Vec3, d: f32, g1o: f32) -> f32 {
         g1o * wo.dot(m).max(0.0) * d / wo.z

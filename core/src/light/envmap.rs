@@ -345,7 +345,7 @@ impl EnvMap {
         _mm256_storeu_ps(us.as_mut_ptr(), u);
         _mm256_storeu_ps(vs.as_mut_ptr(), v);
         let t = &self.texels;
-        if self.filter != FilterType::Nearest && t.lanes {
+        if self.filter != FilterType::Nearest && t.fast {
             // `Bordered::bilinear`'s texel and weights on eight lanes, the same operations in
             // the same order, where every (u, v) lies in the unit square (as a direction's
             // does); then each lane's blend, as `Bordered::lerp` makes it.
@@ -377,29 +377,15 @@ impl EnvMap {
                 let (x0, y0) = (floor!(px), floor!(py));
                 let tx = _mm256_sub_ps(px, _mm256_cvtepi32_ps(x0));
                 let ty = _mm256_sub_ps(py, _mm256_cvtepi32_ps(y0));
-                // The bordered texel (x0 + 1, y0 + 1): (y0 + 1) s + x0 + 1, below 2^31 (`lanes`).
-                let stride = (t.w + 2) as i32;
-                let one_i = _mm256_set1_epi32(1);
-                let first = _mm256_add_epi32(
-                    _mm256_mullo_epi32(_mm256_add_epi32(y0, one_i), _mm256_set1_epi32(stride)),
-                    _mm256_add_epi32(x0, one_i),
-                );
-                let (mut at, mut fx, mut fy) = ([0i32; 8], [0.0f32; 8], [0.0f32; 8]);
-                _mm256_storeu_si256(at.as_mut_ptr().cast(), first);
+                let (mut xs, mut ys, mut fx, mut fy) = ([0i32; 8], [0i32; 8], [0.0f32; 8], [0.0f32; 8]);
+                _mm256_storeu_si256(xs.as_mut_ptr().cast(), x0);
+                _mm256_storeu_si256(ys.as_mut_ptr().cast(), y0);
                 _mm256_storeu_ps(fx.as_mut_ptr(), tx);
                 _mm256_storeu_ps(fy.as_mut_ptr(), ty);
-                let s = stride as usize;
                 for (j, o) in out[..n].iter_mut().enumerate() {
-                    let i = at[j] as usize;
-                    // SAFETY: as in `Bordered::lerp`: the texel's column is at most w and its
-                    // row at most h, and the spare texel follows the last.
-                    let c = crate::texture::bitmap::blend_unchecked(
-                        &t.texels,
-                        [i, i + 1, i + s, i + s + 1],
-                        fx[j],
-                        fy[j],
-                    );
-                    *o = c * self.scale;
+                    // (The bordered texel (x0 + 1, y0 + 1), as `Bordered::bilinear` passes it.)
+                    let (xb, yb) = ((xs[j] + 1) as usize, (ys[j] + 1) as usize);
+                    *o = t.lerp(xb, yb, fx[j], fy[j]) * self.scale;
                 }
                 return;
             }
@@ -491,9 +477,6 @@ struct Bordered {
     /// Both sides below 2^23, where f32 holds every px = u w - 0.5 of the unit square within
     /// [-0.5, w - 0.5] (and py likewise): [`Bordered::bilinear`]'s fast path.
     fast: bool,
-    /// `fast`, and every bordered texel's index below 2^31: the fast path on eight lanes of
-    /// i32 ([`EnvMap::eval_many`]).
-    lanes: bool,
     texels: Vec<Rgb>,
 }
 
@@ -509,9 +492,7 @@ impl Bordered {
             texels.extend((0..w + 2).map(|c| b.texel((c + w - 1) % w, y)));
         }
         texels.push(Rgb::ZERO);
-        let fast = w < 1 << 23 && h < 1 << 23;
-        let lanes = fast && ((w + 2) as u64 * (h + 2) as u64) < 1 << 31;
-        Bordered { w, h, fw: w as f32, fh: h as f32, fast, lanes, texels }
+        Bordered { w, h, fw: w as f32, fh: h as f32, fast: w < 1 << 23 && h < 1 << 23, texels }
     }
 
     /// The map without its border.
