@@ -138,7 +138,7 @@ impl Ablation {
             Ablation::UniformEnvironment => "environment sampled uniformly".into(),
             Ablation::DiffuseInsteadOfHair => "diffuse instead of hair".into(),
             Ablation::NoLightCutoff => "every light sample's shadow ray traced (no cutoff)".into(),
-            Ablation::NoEarlyRoulette => "Russian roulette only from rr_depth".into(),
+            Ablation::NoEarlyRoulette => "Mitsuba's Russian roulette (from rr_depth, on throughput)".into(),
             Ablation::TextureFilter(f) => format!("texture filter {}", f.name()),
             Ablation::MaxDepth(d) => format!("max_depth {d}"),
         }

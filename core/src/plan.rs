@@ -43,23 +43,29 @@ pub struct Techniques {
     /// The scene was loaded without its BVH (to be checked and planned, not rendered): the
     /// loads that render it derive the cutoff.
     pub light_cutoff_pending: bool,
-    /// Before `rr_depth`, from the second bounce on, a path whose throughput (its largest
-    /// channel, times eta^2, as Mitsuba's roulette measures it) has fallen under this goes
-    /// through Russian roulette too: it goes on with probability throughput / this, weighted
-    /// by the inverse. The first bounce never does: what it finds is most of a dark pixel's
-    /// value (textured.xml's dark squares lost 2.5% of relMSE to it for 2% of time). 0: only
-    /// from `rr_depth`. [`Techniques::derive`] sets [`EARLY_ROULETTE`].
+    /// From the second bounce on, a path whose throughput (its largest channel, times eta^2,
+    /// as Mitsuba's roulette measures it) has fallen under this goes through Russian roulette
+    /// even before `rr_depth`: it goes on with probability throughput / this, weighted by the
+    /// inverse. From `rr_depth` on every path does, with that probability but at most 0.95
+    /// (Mitsuba's rule is throughput, at most 0.95: it ended half the paths of a closed room
+    /// that still carried half their light). The first bounce never does: what it finds is
+    /// most of a dark pixel's value (textured.xml's dark squares lost 2.5% of relMSE to it for
+    /// 2% of time). 0: Mitsuba's roulette alone, from `rr_depth`. [`Techniques::derive`] sets
+    /// [`EARLY_ROULETTE`].
     pub early_roulette: f32,
 }
 
-/// [`Techniques::early_roulette`]: 25%. Fur absorbs: two or three bounces in, many of its
+/// [`Techniques::early_roulette`]: 30%. Fur absorbs: two or three bounces in, many of its
 /// paths carry a few percent, and each bounce through fur costs a full ray (docs/BENCHMARKS.md,
-/// "Issue 15, thirty-second step", which began at 5%). In a closed room (cbox) paths keep a
-/// quarter to a half of their throughput for several bounces, each bounce a full ray for
-/// little light: efficiency (1 / (relMSE x time), 3 seeds) against 5%, at 25%: cbox +6%,
-/// whimsical +9%, hair the same (it falls past 30%), textured, envmap and thinlens the same
-/// (their paths leave the scene first); "Issue 15, thirty-fourth step".
-pub const EARLY_ROULETTE: f32 = 0.25;
+/// "Issue 15, thirty-second step", which began at 5%, before rr_depth only). In a closed room
+/// (cbox) paths off the coloured walls fall under a third of their throughput within a few
+/// bounces, each bounce a full ray for little light, while those off the white walls keep
+/// half of it past rr_depth, where Mitsuba's rule ended half of them. Efficiency
+/// (1 / (relMSE x time), 3 seeds) against 5% before rr_depth and Mitsuba's rule after it:
+/// cbox +9.5%, whimsical +5%, hair -2% (runs of one binary differ by 3-5% in time);
+/// textured, envmap and thinlens the same (their paths leave the scene first); "Issue 15,
+/// thirty-fourth step".
+pub const EARLY_ROULETTE: f32 = 0.3;
 
 /// The light-sample cutoff ([`Techniques::light_cutoff`]) as a share of the scene's
 /// brightness ([`crate::render::preview`]): 1%. In fur, paths lose most of their throughput
@@ -250,9 +256,10 @@ impl PlanDescription {
         let i = &scene.integrator;
         if t.early_roulette > 0.0 {
             stages.push(format!(
-                "Russian roulette from depth {}, and before it for paths under {}% throughput",
-                i.rr_depth,
-                t.early_roulette * 100.0
+                "Russian roulette from the second bounce for paths under {}% throughput, and from depth {} for all (at most 95% go on)",
+                // (To a tenth of a percent: 0.3 in f32 times 100 prints 30.000002.)
+                (t.early_roulette * 1000.0).round() / 10.0,
+                i.rr_depth
             ));
         } else {
             stages.push(format!("Russian roulette from depth {}", i.rr_depth));

@@ -1,9 +1,11 @@
 //! Unidirectional path tracing with next-event estimation and multiple importance sampling
-//! (power heuristic, Veach 1997), Russian roulette as Mitsuba 3's `path` integrator does it:
-//! from `rr_depth` on, continue with probability min(max(throughput) * eta^2, 0.95). Before
-//! it, from the second bounce on, paths under `Techniques::early_roulette` throughput go
-//! through roulette too, and light samples under `Techniques::light_cutoff` before their
-//! shadow ray (the same expectation).
+//! (power heuristic, Veach 1997) and Russian roulette. Mitsuba 3's `path` integrator, from
+//! `rr_depth` on, continues with probability min(max(throughput) * eta^2, 0.95). Here, from
+//! the second bounce on, paths under `Techniques::early_roulette` throughput (measured as
+//! Mitsuba does) go on with probability throughput / early_roulette; from `rr_depth` on, with
+//! that probability but at most 0.95, so that every path still ends (Mitsuba's rule when
+//! early_roulette is 0). Light samples under `Techniques::light_cutoff` go through roulette
+//! before their shadow ray. All keep the expectation.
 //!
 //! Depth follows Mitsuba: the camera ray's hit is depth 0; emission is gathered at every depth;
 //! a vertex at depth d scatters only if d + 1 < max_depth.
@@ -294,7 +296,10 @@ pub fn li(
         depth += 1;
 
         if depth >= settings.rr_depth {
-            let q = (beta.max_element() * eta * eta).min(0.95);
+            // Mitsuba's roulette, on the early roulette's scale (`Techniques::early_roulette`):
+            // a path that still carries that much goes on with probability 0.95.
+            let m = beta.max_element() * eta * eta;
+            let q = if plan.early_roulette > 0.0 { m / plan.early_roulette } else { m }.min(0.95);
             if !(choices.get(s)[2] < q) {
                 break;
             }
