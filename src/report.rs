@@ -106,7 +106,9 @@ impl Ablation {
         if t.light_sampling && t.light_cutoff > 0.0 {
             all.push(Ablation::NoLightCutoff);
         }
-        if t.early_roulette > 0.0 && scene.integrator.max_depth > 2 && scene.integrator.rr_depth > 2 {
+        // (The roulette acts from depth 2, and from rr_depth on: where a path can get there.)
+        let i = &scene.integrator;
+        if t.early_roulette > 0.0 && (i.max_depth > 2 || i.rr_depth < i.max_depth) {
             all.push(Ablation::NoEarlyRoulette);
         }
         if scene.has_light(LightKind::Envmap) {

@@ -979,8 +979,9 @@ fn the_light_cutoff_traces_fewer_shadow_rays_and_keeps_the_expectation() {
 /// Early Russian roulette (`Techniques::early_roulette`, issue 15's thirty-second step): inside
 /// a closed emitter of radiance 1 with a dark diffuse albedo (0.15), L = 1 / (1 - a) exactly;
 /// from the second bounce on a path's throughput is under 30% long before `rr_depth` 5, so the
-/// roulette runs. The mean is the same as without it, within 0.2% of 1 / (1 - a) (both read
-/// it to 2e-5; without the roulette's weight 0.992), with fewer rays; the plan says so.
+/// roulette runs. The mean is the same as without it, within 0.2% of 1 / (1 - a) (at 5%, the
+/// thirty-second step's threshold, both read it to 2e-5; without the roulette's weight 0.992),
+/// with fewer rays; the plan says so.
 #[test]
 fn early_roulette_keeps_the_furnace_and_traces_fewer_rays() {
     let sphere = r#"<shape type="sphere"><float name="radius" value="5"/>"#;

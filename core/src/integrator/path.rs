@@ -298,12 +298,15 @@ pub fn li(
         if depth >= settings.rr_depth {
             // Mitsuba's roulette, on the early roulette's scale (`Techniques::early_roulette`):
             // a path that still carries that much goes on with probability 0.95.
+            // (Through `roulette`, which rounds q up to the numbers' grid: the chance of going
+            // on is then q exactly.)
             let m = beta.max_element() * eta * eta;
-            let q = if plan.early_roulette > 0.0 { m / plan.early_roulette } else { m }.min(0.95);
-            if !(choices.get(s)[2] < q) {
+            let q = (if plan.early_roulette > 0.0 { m / plan.early_roulette } else { m }).min(0.95);
+            let keep = roulette(q, choices.get(s)[2]);
+            if keep == 0.0 {
                 break;
             }
-            beta /= q;
+            beta *= keep;
         } else if plan.early_roulette > 0.0 && depth >= 2 {
             // Before rr_depth, from the second bounce on, for paths whose throughput fell
             // under `early_roulette` (`Techniques::early_roulette`), on the same number:

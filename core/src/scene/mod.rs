@@ -54,8 +54,8 @@ pub struct FilmSettings {
 pub struct PathSettings {
     /// Longest path, in vertices after the camera (`u32::MAX` for Mitsuba's -1).
     pub max_depth: u32,
-    /// Depth from which Mitsuba's Russian roulette starts (Furnace's own for low-throughput
-    /// paths may act before it: `Techniques::early_roulette`).
+    /// Depth from which every path goes through Russian roulette, as in Mitsuba (on Furnace's
+    /// scale, and for low-throughput paths before it too: `Techniques::early_roulette`).
     pub rr_depth: u32,
     /// Hide directly visible emitters.
     pub hide_emitters: bool,
