@@ -68,17 +68,22 @@ pub struct Techniques {
 pub const EARLY_ROULETTE: f32 = 0.3;
 
 /// The light-sample cutoff ([`Techniques::light_cutoff`]) as a share of the scene's
-/// brightness ([`crate::render::preview`]): 1%. In fur, paths lose most of their throughput
-/// to absorption within a few bounces, and many of their shadow rays would add under it;
-/// docs/BENCHMARKS.md, "Issue 15, thirty-second step".
-pub const LIGHT_CUTOFF: f64 = 0.01;
+/// brightness ([`crate::render::preview`]): 3%. In fur, paths lose most of their throughput
+/// to absorption within a few bounces, and many of their shadow rays would add under it
+/// (docs/BENCHMARKS.md, "Issue 15, thirty-second step", which set 1%). Efficiency
+/// (1 / (relMSE x time), 3 seeds) at 3% against 1%: hair +3.7%, whimsical +3.4%, envmap +2%,
+/// the error within 0.1% and the time shorter; thinlens, which then gets a cutoff, -0.7%
+/// (within the spread); cbox's preview leaves out 8.8% (under [`CUTOFF_SAVES`]: none, as
+/// before, where a cutoff would cost it 2-4%); "Issue 15, thirty-fourth step".
+pub const LIGHT_CUTOFF: f64 = 0.03;
 
 /// The share of shadow rays the cutoff must leave out of the scene's preview for a render to
 /// use it ([`crate::scene::Scene::derive_techniques`]). Its test costs about 30 instructions
 /// a light sample (and, for an environment map, the radiance lookup of samples whose shadow
 /// ray is blocked); the cheapest shadow ray about 300 (cbox's, callgrind), fur's thousands:
 /// at 15% left out it pays in any scene. (The early roulette leaves fewer light samples for
-/// the cutoff: whimsical's preview read 25% before it, 21% with it at 5%, 18% at 30%.)
+/// the cutoff: whimsical's preview read 25% before it, 21% with it at 5%, 18% at 30%, with a
+/// cutoff of 1%; 30% with the cutoff at 3%. cbox's reads 8.8%.)
 pub const CUTOFF_SAVES: f64 = 0.15;
 
 impl Techniques {
