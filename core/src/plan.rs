@@ -49,9 +49,9 @@ pub struct Techniques {
     /// inverse. From `rr_depth` on every path does, with that probability but at most 0.95
     /// (Mitsuba's rule is throughput, at most 0.95: it ended half the paths of a closed room
     /// that still carried half their light). Before `rr_depth` the first bounce never does:
-    /// what it finds is most of a dark pixel's value (textured.xml's dark squares lost 2.5% of relMSE to it for
-    /// 2% of time). 0: Mitsuba's roulette alone, from `rr_depth`. [`Techniques::derive`] sets
-    /// [`EARLY_ROULETTE`].
+    /// what it finds is most of a dark pixel's value (textured.xml's dark squares lost 2.5% of
+    /// relMSE to it for 2% of time). 0: Mitsuba's roulette alone, from `rr_depth`.
+    /// [`Techniques::derive`] sets [`EARLY_ROULETTE`].
     pub early_roulette: f32,
 }
 

@@ -295,30 +295,26 @@ pub fn li(
         from = scene.accel.spawned_from(&scene.shapes, &hit, &it, wi_world);
         depth += 1;
 
-        if depth >= settings.rr_depth {
-            // Mitsuba's roulette, on the early roulette's scale (`Techniques::early_roulette`):
-            // a path that still carries that much goes on with probability 0.95.
-            // (Through `roulette`, which rounds q up to the numbers' grid: the chance of going
-            // on is then q exactly.)
-            let m = beta.max_element() * eta * eta;
-            let q = (if plan.early_roulette > 0.0 { m / plan.early_roulette } else { m }).min(0.95);
+        // Russian roulette (`Techniques::early_roulette`, threshold t): from the second bounce
+        // on, a path under t of its throughput goes on with probability throughput / t; from
+        // rr_depth on every path does, at most 0.95 (with t = 0, Mitsuba's rule: throughput,
+        // at most 0.95). On the path's roulette number, which nothing this vertex has drawn
+        // depends on; through `roulette`, which rounds q up to the numbers' grid, so that the
+        // chance of going on is q exactly.
+        let (m, t) = (beta.max_element() * eta * eta, plan.early_roulette);
+        let q = if depth >= settings.rr_depth {
+            (if t > 0.0 { m / t } else { m }).min(0.95)
+        } else if t > 0.0 && depth >= 2 {
+            (m / t).min(1.0)
+        } else {
+            1.0
+        };
+        if q < 1.0 {
             let keep = roulette(q, choices.get(s)[2]);
             if keep == 0.0 {
                 break;
             }
             beta *= keep;
-        } else if plan.early_roulette > 0.0 && depth >= 2 {
-            // Before rr_depth, from the second bounce on, for paths whose throughput fell
-            // under `early_roulette` (`Techniques::early_roulette`), on the same number:
-            // nothing this vertex has drawn depends on it.
-            let m = beta.max_element() * eta * eta;
-            if m < plan.early_roulette {
-                let keep = roulette(m / plan.early_roulette, choices.get(s)[2]);
-                if keep == 0.0 {
-                    break;
-                }
-                beta *= keep;
-            }
         }
         if !(beta.max_element() > 0.0) {
             break;
