@@ -297,6 +297,10 @@ pub struct Accel {
     /// The trees of the shape groups that instances (primitives of this tree) place; empty
     /// in those trees themselves.
     groups: Vec<Accel>,
+    /// The leaf that is the whole tree (the root's only child), if it is one; else 0. A ray
+    /// that leaves it ([`SpawnedFrom`]) meets nothing, so its query ends before it starts:
+    /// textured.xml's ground, two triangles, under a sky.
+    lone: u32,
 }
 
 /// A ray's constants for the box tests.
@@ -1507,6 +1511,7 @@ impl Accel {
                 kernel,
                 curves,
                 groups: Vec::new(),
+                lone: 0,
             };
         }
         // Past two million primitives (a quarter of a million fibres), obvhs' better builds
@@ -1560,6 +1565,13 @@ impl Accel {
             top_depth + depth
         };
         let Builder { mut nodes, prims, mut tris, .. } = b;
+        let root = &nodes[0];
+        let only = root.used.trailing_zeros() as usize;
+        let lone = if nodes.len() == 1 && root.used.count_ones() == 1 && root.child[only] & LEAF != 0 {
+            root.child[only]
+        } else {
+            0
+        };
         tris.shrink_to_fit();
         nodes.shrink_to_fit();
         tracing::debug!(
@@ -1580,6 +1592,7 @@ impl Accel {
             kernel,
             curves,
             groups: Vec::new(),
+            lone,
         }
     }
 
@@ -1780,6 +1793,9 @@ impl Accel {
     pub fn closest(&self, shapes: &[Shape], ray: &Ray, from: SpawnedFrom) -> Option<Hit> {
         #[cfg(feature = "ray-log")]
         ray_log::note(ray, from, false);
+        if from.leaf != 0 && from.leaf == self.lone {
+            return None;
+        }
         let mut q = Query::from(shapes, ray, from);
         let (t, k, aux) = self.query_with(&mut q, false)?;
         Some(Hit { t, k, aux, inner: q.inner.get(), leaf: q.leaf })
@@ -1794,6 +1810,9 @@ impl Accel {
     pub fn occluded_from(&self, shapes: &[Shape], ray: &Ray, from: SpawnedFrom) -> bool {
         #[cfg(feature = "ray-log")]
         ray_log::note(ray, from, true);
+        if from.leaf != 0 && from.leaf == self.lone {
+            return false;
+        }
         self.query_with(&mut Query::from(shapes, ray, from), true).is_some()
     }
 
@@ -2972,6 +2991,69 @@ mod tests {
         assert_eq!(from.leaf, 0, "the fold taken as a plane");
         let fast = accel.closest(&shapes, &ray, from).map(|h| accel.hit_interaction(&shapes, &ray, &h).prim);
         assert_eq!(fast, Some(1));
+    }
+
+    /// A tree that is one leaf (a rectangle, a ball, a disk alone) knows it (`Accel::lone`), and
+    /// the queries of rays that leave it end at once: with the answer of the query that tests
+    /// it (nothing), for closest and any hits. A ray into the ball keeps its hit; a tree of two
+    /// leaves has no lone leaf.
+    #[test]
+    fn rays_leaving_a_lone_leaf_meet_nothing() {
+        let wall = glam::Mat4::from_scale_rotation_translation(
+            Vec3::new(2.0, 0.7, 1.0),
+            glam::Quat::from_euler(glam::EulerRot::XYZ, 0.3, 0.5, 0.2),
+            Vec3::ZERO,
+        );
+        let ball = Geometry::Sphere(super::super::Sphere {
+            center: Vec3::ZERO,
+            radius: 0.8,
+            rot: glam::Mat3::IDENTITY,
+            tangents: true,
+        });
+        let disk = Geometry::Disk(super::super::Disk::new(glam::Mat4::from_rotation_x(1.2)));
+        let mut s = 99;
+        for (name, geometry) in
+            [("wall", Geometry::Mesh(Mesh::placed_rectangle(&wall))), ("ball", ball), ("disk", disk)]
+        {
+            let shapes = vec![shape(geometry, name)];
+            let accel = Accel::build(&shapes);
+            assert_ne!(accel.lone, 0, "{name}: one leaf");
+            let (mut left, mut into) = (0, 0);
+            for _ in 0..3000 {
+                let target = (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5) * 0.8;
+                let dir = (Vec3::new(xorshift(&mut s), xorshift(&mut s), xorshift(&mut s)) - 0.5)
+                    .normalize_or(Vec3::Z);
+                let ray = Ray::new(target + dir * 9.0, -dir);
+                let Some(hit) = accel.closest(&shapes, &ray, SpawnedFrom::NOTHING) else { continue };
+                let it = accel.hit_interaction(&shapes, &ray, &hit);
+                let d = crate::math::square_to_uniform_sphere(glam::Vec2::new(
+                    xorshift(&mut s),
+                    xorshift(&mut s),
+                ));
+                let ray = it.spawn_ray(d);
+                let from = accel.spawned_from(&shapes, &hit, &it, d);
+                let full = accel.closest(&shapes, &ray, SpawnedFrom::piece(it.leaving())).map(|h| h.t);
+                let fast = accel.closest(&shapes, &ray, from).map(|h| h.t);
+                assert_eq!(full, fast, "{name}: along {d}");
+                assert_eq!(accel.occluded_from(&shapes, &ray, from), full.is_some(), "{name}");
+                if from.leaf == accel.lone {
+                    assert_eq!(fast, None, "{name}: a ray leaving the lone leaf");
+                    left += 1;
+                } else {
+                    into += 1;
+                }
+            }
+            assert!(left > 1000, "{name}: {left} rays left the leaf");
+            assert_eq!(into > 0, name == "ball", "{name}: {into} rays went back in");
+        }
+        let two = vec![
+            shape(Geometry::Mesh(Mesh::placed_rectangle(&wall)), "wall"),
+            shape(
+                Geometry::Mesh(Mesh::placed_rectangle(&glam::Mat4::from_translation(Vec3::Z * 5.0))),
+                "far",
+            ),
+        ];
+        assert_eq!(Accel::build(&two).lone, 0, "two leaves");
     }
 
     /// Rays spawned as the integrator spawns them, from hits on a placed rectangle, a folded
