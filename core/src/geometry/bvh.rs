@@ -532,6 +532,58 @@ mod x86 {
         Some(mask)
     }
 
+    /// [`super::super::shapes::intersect_sphere`] of one ray against up to four balls (centres
+    /// `c`, radii squared `rr`, as that function squares them), one a lane: the same IEEE
+    /// operations in the same order, for the lanes in `alive`. Returns the lanes that hit
+    /// within `[tmin, tmax)`, and their distances.
+    #[inline(always)]
+    pub unsafe fn balls_sse(
+        ray: &crate::geometry::Ray,
+        c: &[[f32; 4]; 3],
+        rr: [f32; 4],
+        alive: u32,
+        tmax: f32,
+    ) -> (u32, [f32; 4]) {
+        use _mm_add_ps as add;
+        use _mm_mul_ps as mul;
+        use _mm_sub_ps as sub;
+        let (o, d) = (ray.o, ray.d);
+        let f = [0, 1, 2].map(|k| sub(_mm_set1_ps(o[k]), _mm_loadu_ps(c[k].as_ptr())));
+        let ds = [0, 1, 2].map(|k| _mm_set1_ps(d[k]));
+        macro_rules! dot {
+            ($a:expr, $b:expr) => {
+                add(add(mul($a[0], $b[0]), mul($a[1], $b[1])), mul($a[2], $b[2]))
+            };
+        }
+        let a = _mm_set1_ps(d.length_squared());
+        let b = dot!(f, ds);
+        let rr = _mm_loadu_ps(rr.as_ptr());
+        let cc = sub(dot!(f, f), rr);
+        let ba = _mm_div_ps(b, a);
+        let l = [sub(f[0], mul(ds[0], ba)), sub(f[1], mul(ds[1], ba)), sub(f[2], mul(ds[2], ba))];
+        let disc = mul(a, sub(rr, dot!(l, l)));
+        let neg = _mm_movemask_ps(_mm_cmplt_ps(disc, _mm_setzero_ps())) as u32;
+        if !neg & alive == 0 {
+            return (0, [0.0; 4]);
+        }
+        let root = _mm_sqrt_ps(disc);
+        let sign = _mm_set1_ps(-0.0);
+        // copysign(root, b), then negated.
+        let signed = _mm_or_ps(_mm_andnot_ps(sign, root), _mm_and_ps(sign, b));
+        let q = _mm_xor_ps(add(b, signed), sign);
+        let (t0, t1) = (_mm_div_ps(q, a), _mm_div_ps(cc, q));
+        // if t0 > t1, swap.
+        let swap = _mm_cmpgt_ps(t0, t1);
+        let (t0, t1) = (_mm_blendv_ps(t0, t1, swap), _mm_blendv_ps(t1, t0, swap));
+        let (tmin, tmax) = (_mm_set1_ps(ray.tmin), _mm_set1_ps(tmax));
+        let in0 = _mm_and_ps(_mm_cmpgt_ps(t0, tmin), _mm_cmplt_ps(t0, tmax));
+        let in1 = _mm_and_ps(_mm_cmpgt_ps(t1, tmin), _mm_cmplt_ps(t1, tmax));
+        let hit = _mm_movemask_ps(_mm_or_ps(in0, in1)) as u32 & !neg & alive;
+        let mut t = [0.0f32; 4];
+        _mm_storeu_ps(t.as_mut_ptr(), _mm_blendv_ps(t1, t0, in0));
+        (hit, t)
+    }
+
     /// [`super::super::intersect_triangle`] of one triangle (its vertices on the rays' permuted
     /// axes) against eight rays, one a lane: the same IEEE operations in the same order as
     /// [`quad_sse`] (hence as the scalar test), for the lanes in `alive`. Returns the lanes
@@ -1753,6 +1805,27 @@ impl Accel {
         inst.to_world(&group.interaction(shapes, k, &local.ray, t_local, aux, inner), t, index)
     }
 
+    /// The centres (coordinate by coordinate) and radii squared of the `count` primitives from
+    /// `first`, if all are balls; `None` otherwise.
+    #[inline(always)]
+    fn leaf_balls(&self, shapes: &[Shape], first: u32, count: u32) -> Option<([[f32; 4]; 3], [f32; 4])> {
+        let (mut c, mut rr) = ([[0.0f32; 4]; 3], [0.0f32; 4]);
+        for j in 0..count as usize {
+            // SAFETY: a leaf's primitives are in `prims`.
+            let prim = unsafe { self.prims.get_unchecked(first as usize + j) };
+            if prim.shape & (TRIANGLE | CURVE) != 0 {
+                return None;
+            }
+            let Geometry::Sphere(ball) = &shapes[(prim.shape & SHAPE) as usize].geometry else { return None };
+            for (a, c) in c.iter_mut().enumerate() {
+                c[j] = ball.center[a];
+            }
+            // (As `intersect_sphere` squares it.)
+            rr[j] = ball.radius * ball.radius;
+        }
+        Some((c, rr))
+    }
+
     /// Which of a leaf's primitives are fibre segments that the ray certainly misses (bit `j`
     /// for the leaf's `j`-th), all tested together.
     #[inline(always)]
@@ -2009,6 +2082,29 @@ impl Accel {
                 }
             }
         } else {
+            // A leaf of two or more balls alone (x86 kernels): tested together, then taken in
+            // order, each against the closest hit so far, as the loop below would.
+            #[cfg(target_arch = "x86_64")]
+            if T::QUADS && count > 1 {
+                if let Some((c, rr)) = self.leaf_balls(q.shapes, first, count) {
+                    let (mut mask, t) = x86::balls_sse(q.ray, &c, rr, (1 << count) - 1, *tmax);
+                    while mask != 0 {
+                        let j = mask.trailing_zeros();
+                        mask &= mask - 1;
+                        // (A lane's nearer root past a closer hit leaves its farther one past it
+                        // too: the same as `intersect_sphere` against that hit.)
+                        if t[j as usize] < *tmax {
+                            *tmax = t[j as usize];
+                            q.best = Some((first + j, Vec2::ZERO));
+                            q.leaf = cur;
+                            if ANY {
+                                return true;
+                            }
+                        }
+                    }
+                    return false;
+                }
+            }
             let skip = if self.curves { self.curve_misses(q, first, count) } else { 0 };
             for (j, k) in (first..first + count).enumerate() {
                 if skip >> j & 1 != 0 {
@@ -2800,7 +2896,9 @@ mod tests {
     /// and point, and the same occlusion answer. Rays straight down onto a grid's vertices and
     /// edges (edge functions exactly 0: the quad hands the leaf to the one-at-a-time test),
     /// coincident triangles (ties: the first in leaf order wins), rays from the surface itself
-    /// and random rays, some ending short, through a soup with balls among its triangles.
+    /// and random rays, some ending short, through a soup with balls among its triangles. The
+    /// leaves of two or more balls alone, which the x86 kernels test together too
+    /// (`x86::balls_sse`), likewise.
     #[test]
     fn triangle_quads_match_one_at_a_time() {
         let shapes = grid_soup_and_balls(21, 17);
@@ -2813,6 +2911,18 @@ mod tests {
         let accels: Vec<Accel> = kernels.iter().map(|&k| accel_of(k)).collect();
         assert_eq!(kernels.last(), Some(&Kernel::Scalar), "the reference is last");
         assert!(accels[0].nodes.len() > 1 && accels[0].tris.index.len() > 100);
+        let a = &accels[0];
+        let ball_leaves = a
+            .nodes
+            .iter()
+            .flat_map(|n| (0..WIDTH).filter(|&i| n.used >> i & 1 != 0).map(|i| n.child[i]))
+            .filter(|&c| c & LEAF != 0)
+            .filter(|&c| {
+                let count = ((c & COUNT) >> FIRST_BITS) + 1;
+                count > 1 && a.leaf_balls(&shapes, c & FIRST, count).is_some()
+            })
+            .count();
+        assert!(ball_leaves >= 5, "{ball_leaves} leaves of balls alone");
         let rays = grid_rays(5);
         let (mut hits, mut on_edges) = (0, 0);
         for (r, ray) in rays.iter().enumerate() {
