@@ -29,6 +29,8 @@ fn the_fuzzing_corpus_replays_without_a_panic() {
         total += files.len();
     }
     assert!(total >= 50, "{total} inputs");
+    // The scene target's asset folder (one per process; this test is its only user here).
+    std::fs::remove_dir_all(furnace_proto::fuzz::asset_dir()).ok();
 }
 
 /// Writes the seed partials of `fuzz/corpus/partial` (run by hand with `--ignored` when the

@@ -56,6 +56,7 @@ fn a_panic_while_loading_is_an_error() {
             && e.to_string().contains("planted bug"),
         "{e}"
     );
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// Nested `twosided` BSDFs (valid in Mitsuba) used to be copied for both sides at every
