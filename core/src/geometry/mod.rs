@@ -175,6 +175,9 @@ pub struct RayPre {
 }
 
 impl RayPre {
+    /// What a query of a tree without triangles holds instead (never read).
+    pub const UNUSED: RayPre = RayPre { kx: 0, ky: 1, kz: 2, sx: 0.0, sy: 0.0, sz: 1.0 };
+
     /// `d`'s constants. The dominant axis kz (a tie goes to the later axis), and kx, ky the
     /// next two in turn, swapped where d's kz coordinate is negative (to keep the winding).
     #[inline(always)]
