@@ -196,7 +196,10 @@ impl RayPre {
     /// bounce's direction is random, so branches on it mispredict about half the time (they
     /// were a fifth of `Accel::closest`'s own time on textured.xml), and an array indexed by
     /// kx was a memory round trip in every query.
-    #[cfg_attr(all(target_arch = "x86_64", target_feature = "ssse3", target_feature = "sse4.1"), allow(dead_code))]
+    #[cfg_attr(
+        all(target_arch = "x86_64", target_feature = "ssse3", target_feature = "sse4.1"),
+        allow(dead_code)
+    )]
     fn new_selected(d: Vec3) -> RayPre {
         use glam::{BVec3A, Vec3A, Vec3Swizzles};
         let a = d.abs();
@@ -237,7 +240,8 @@ impl RayPre {
         struct Shuffles([[u8; 16]; 6]);
         const TABLE: [(usize, usize, [u8; 16]); 6] =
             [entry(1, 2, 0), entry(2, 1, 0), entry(2, 0, 1), entry(0, 2, 1), entry(0, 1, 2), entry(1, 0, 2)];
-        static SHUFFLES: Shuffles = Shuffles([TABLE[0].2, TABLE[1].2, TABLE[2].2, TABLE[3].2, TABLE[4].2, TABLE[5].2]);
+        static SHUFFLES: Shuffles =
+            Shuffles([TABLE[0].2, TABLE[1].2, TABLE[2].2, TABLE[3].2, TABLE[4].2, TABLE[5].2]);
         let a = d.abs();
         let (x_top, y_top) = (a.x > a.y && a.x > a.z, !(a.x > a.y) && a.y > a.z);
         let kz = 2 - 2 * x_top as usize - y_top as usize;
